@@ -1,0 +1,349 @@
+"""Image-to-video flow models v_theta(x_t, t | first frame, text), LoRA, and checkpoints (Sec. 3 "Setup", App. A.1).
+
+The paper's base is LTX-2; on a laptop it is `ToyVideoFlow`, a ~1.5M-parameter (2+1)D convolutional U-Net over
+the toy world's 16x16 videos (world.py), pretrained by `python train.py --stage pretrain` on captions in the style
+of the detailed description D. Design notes (see ../shared/notes/toy-prototype.md for why): convolutions,
+per-frame FiLM from (pooled text, flow time t, frame index), x/y coordinate channels, the first frame as input
+channels, a zero-initialised temporal conv in every block, a bottleneck transformer block (self-attention over
+space-time tokens, cross-attention to the text tokens), and x_1 predicted as a residual on the first frame.
+
+Latent space of the toy model: the generated frames 1..F-1 as a tensor (B, T=F-1, 3, H, W) in [-1, 1]; frame 0
+is the clean condition, not generated (as in image-to-video LTX-2, where first-frame tokens sit at t = 1 here).
+
+The Executor is this model plus LoRA adapters (B = 0 at init, so it starts equal to the base); the Demonstrator is
+the *same* weights with the adapters switched off (`adapters_disabled`) -- one copy in memory, as with LTX-2.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import re
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F_
+
+import flow
+import world
+
+# ----------------------------------------------------------------------------------------------------------------
+# text: a word-level tokenizer and an order-aware encoder
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class Tokenizer:
+    """Words of world.VOCAB -> ids 1..V (0 is padding). Any other word is an error, named in the message."""
+
+    def __init__(self, vocab: list[str], max_len: int = 16):
+        self.vocab, self.max_len = list(vocab), max_len
+        self.ids = {w: i + 1 for i, w in enumerate(self.vocab)}
+
+    def words(self, text: str) -> list[str]:
+        text = text.lower().strip()
+        words = re.findall(r"\[|\]|:|[^\s\[\]:]+", text)
+        for w in words:
+            if w not in self.ids:
+                raise ValueError(f"unknown word {w!r} in prompt {text!r} (the toy vocabulary has {len(self.vocab)} "
+                                 f"words: {' '.join(self.vocab)})")
+        if len(words) > self.max_len:
+            raise ValueError(f"prompt {text!r} has {len(words)} words; at most {self.max_len}")
+        return words
+
+    def __call__(self, texts: list[str]) -> torch.Tensor:
+        """list of B prompts -> (B, max_len) long, right-padded with 0."""
+        out = torch.zeros(len(texts), self.max_len, dtype=torch.long)
+        for i, t in enumerate(texts):
+            ids = [self.ids[w] for w in self.words(t)]
+            out[i, :len(ids)] = torch.tensor(ids, dtype=torch.long)
+        return out
+
+
+class Attention(nn.Module):
+    """Multi-head attention with separate q/k/v/out projections (the Linear layers LoRA attaches to)."""
+
+    def __init__(self, dim: int, heads: int, ctx_dim: int | None = None):
+        super().__init__()
+        self.heads = heads
+        self.to_q = nn.Linear(dim, dim)
+        self.to_k = nn.Linear(ctx_dim or dim, dim)
+        self.to_v = nn.Linear(ctx_dim or dim, dim)
+        self.to_out = nn.Linear(dim, dim)
+
+    def forward(self, x, ctx=None, key_mask=None):
+        ctx = x if ctx is None else ctx
+        B, N, D = x.shape
+        q, k, v = (z.reshape(B, -1, self.heads, D // self.heads).transpose(1, 2)  # (B, nh, N, hs)
+                   for z in (self.to_q(x), self.to_k(ctx), self.to_v(ctx)))
+        mask = None if key_mask is None else key_mask[:, None, None, :]  # (B, 1, 1, L): True = attend
+        y = F_.scaled_dot_product_attention(q, k, v, attn_mask=mask)      # (B, nh, N, hs)
+        return self.to_out(y.transpose(1, 2).reshape(B, N, D))
+
+
+class TextEncoder(nn.Module):
+    """Word embeddings + learned positions + pre-norm transformer layers: order-aware, so "[red square]: move to
+    the blue circle" and "[blue circle]: move to the red square" get different encodings."""
+
+    def __init__(self, vocab_size: int, dim: int, layers: int, heads: int, max_len: int):
+        super().__init__()
+        self.emb = nn.Embedding(vocab_size + 1, dim, padding_idx=0)
+        self.pos = nn.Parameter(torch.randn(max_len, dim) * 0.02)
+        self.blocks = nn.ModuleList(nn.ModuleList([nn.LayerNorm(dim), Attention(dim, heads), nn.LayerNorm(dim),
+                                                   nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(),
+                                                                 nn.Linear(2 * dim, dim))]) for _ in range(layers))
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, ids):
+        """ids (B, L) -> tokens (B, L, dim), mask (B, L) True for real words, pooled (B, dim) masked mean."""
+        mask = ids > 0
+        attend = mask.clone()
+        attend[:, 0] = True  # an empty caption still has one key to attend to (its padding slot)
+        h = self.emb(ids) + self.pos[: ids.shape[1]]
+        for ln1, attn, ln2, mlp in self.blocks:
+            h = h + attn(ln1(h), key_mask=attend)
+            h = h + mlp(ln2(h))
+        h = self.norm(h)
+        pooled = (h * mask[..., None]).sum(1) / mask.sum(1, keepdim=True).clamp(min=1)
+        return h, attend, pooled
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the (2+1)D U-Net
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class ResBlock(nn.Module):
+    """Spatial 3x3 convs with FiLM from the per-frame embedding, then a zero-initialised temporal conv (k = 3)."""
+
+    def __init__(self, c_in: int, c_out: int, emb_dim: int):
+        super().__init__()
+        self.n1, self.c1 = nn.GroupNorm(8, c_in), nn.Conv2d(c_in, c_out, 3, padding=1)
+        self.film = nn.Linear(emb_dim, 2 * c_out)
+        self.n2, self.c2 = nn.GroupNorm(8, c_out), nn.Conv2d(c_out, c_out, 3, padding=1)
+        self.skip = nn.Conv2d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
+        self.nt, self.ct = nn.GroupNorm(8, c_out), nn.Conv1d(c_out, c_out, 3, padding=1)
+        nn.init.zeros_(self.ct.weight)
+        nn.init.zeros_(self.ct.bias)
+
+    def forward(self, x, emb, T: int):
+        # x: (B*T, C, h, w), emb: (B*T, E)
+        h = self.c1(F_.silu(self.n1(x)))
+        scale, shift = self.film(emb)[..., None, None].chunk(2, dim=1)
+        h = self.c2(F_.silu(self.n2(h * (1 + scale) + shift)))
+        x = self.skip(x) + h
+        BT, C, hh, ww = x.shape
+        z = F_.silu(self.nt(x)).reshape(BT // T, T, C, hh * ww).permute(0, 3, 2, 1).reshape(-1, C, T)  # (B*hw, C, T)
+        z = self.ct(z).reshape(BT // T, hh * ww, C, T).permute(0, 3, 2, 1).reshape(BT, C, hh, ww)
+        return x + z
+
+
+class BottleneckAttention(nn.Module):
+    """At the 4x4 bottleneck: self-attention over all T*16 space-time tokens, cross-attention to text tokens."""
+
+    def __init__(self, dim: int, text_dim: int, heads: int):
+        super().__init__()
+        self.n1, self.attn = nn.LayerNorm(dim), Attention(dim, heads)
+        self.n2, self.cross = nn.LayerNorm(dim), Attention(dim, heads, ctx_dim=text_dim)
+        self.n3, self.mlp = nn.LayerNorm(dim), nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
+
+    def forward(self, x, text, text_mask, T: int):
+        BT, C, hh, ww = x.shape
+        h = x.reshape(BT // T, T, C, hh * ww).permute(0, 1, 3, 2).reshape(BT // T, T * hh * ww, C)  # (B, T*hw, C)
+        h = h + self.attn(self.n1(h))
+        h = h + self.cross(self.n2(h), text, text_mask)
+        h = h + self.mlp(self.n3(h))
+        return h.reshape(BT // T, T, hh * ww, C).permute(0, 1, 3, 2).reshape(BT, C, hh, ww)
+
+
+@dataclass
+class ToyConfig:
+    width: int = 32          # channels at 16x16; 2x at 8x8, 3x at 4x4
+    text_dim: int = 64
+    text_layers: int = 2
+    heads: int = 4
+    emb_dim: int = 128
+    max_words: int = 16
+    frames: int = world.F - 1  # generated frames T
+    size: int = world.H
+    min_one_minus_t: float = 0.05  # v = (x1_hat - x_t) / max(1 - t, this): keeps the velocity finite at t -> 1
+
+
+def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sinusoidal features of 1000 t: (B,) -> (B, dim)."""
+    freqs = torch.exp(-math.log(10000) * torch.arange(dim // 2, device=t.device) / (dim // 2))
+    a = 1000 * t[:, None] * freqs[None]
+    return torch.cat([a.sin(), a.cos()], dim=1)
+
+
+class ToyVideoFlow(nn.Module):
+    """v_theta(x_t, t | c), c = (first frame, text). x_t: (B, T, 3, H, W); t: (B,); returns v: (B, T, 3, H, W)."""
+
+    backend = "toy"
+
+    def __init__(self, cfg: ToyConfig = ToyConfig()):
+        super().__init__()
+        self.cfg = cfg
+        c1, c2, c3, E = cfg.width, 2 * cfg.width, 3 * cfg.width, cfg.emb_dim
+        self.tokenizer = Tokenizer(world.VOCAB, cfg.max_words)
+        self.text = TextEncoder(len(world.VOCAB), cfg.text_dim, cfg.text_layers, cfg.heads, cfg.max_words)
+        self.t_mlp = nn.Sequential(nn.Linear(E, E), nn.SiLU(), nn.Linear(E, E))
+        self.text_proj = nn.Linear(cfg.text_dim, E)
+        self.frame_emb = nn.Parameter(torch.randn(cfg.frames, E) * 0.02)
+        self.emb_out = nn.Sequential(nn.SiLU(), nn.Linear(E, E))
+        self.inp = nn.Conv2d(3 + 3 + 2, c1, 3, padding=1)     # x_t, first frame, (x, y) coordinates
+        self.d1, self.down1 = ResBlock(c1, c1, E), nn.Conv2d(c1, c1, 3, stride=2, padding=1)
+        self.d2, self.down2 = ResBlock(c1, c2, E), nn.Conv2d(c2, c2, 3, stride=2, padding=1)
+        self.m1, self.mid_attn, self.m2 = ResBlock(c2, c3, E), BottleneckAttention(c3, cfg.text_dim, cfg.heads), ResBlock(c3, c3, E)
+        self.u2, self.u1 = ResBlock(c3 + c2, c2, E), ResBlock(c2 + c1, c1, E)
+        self.out_norm, self.out = nn.GroupNorm(8, c1), nn.Conv2d(c1, 3, 3, padding=1)
+        nn.init.zeros_(self.out.weight)  # x1_hat = first frame at init: a still video
+        nn.init.zeros_(self.out.bias)
+        s = torch.linspace(-1, 1, cfg.size)
+        self.register_buffer("coords", torch.stack(torch.meshgrid(s, s, indexing="xy")), persistent=False)  # (2, H, W)
+
+    # -- the interface every backend provides -------------------------------------------------------------------
+    def condition(self, frame0: np.ndarray | torch.Tensor, texts: list[str]) -> dict:
+        """c = (first frame (B, H, W, 3) uint8, prompts) -> what forward() consumes. Raises on unknown words."""
+        f0 = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)  # (B, 3, H, W)
+        return {"frame0": f0.to(self.coords.device), "ids": self.tokenizer(texts).to(self.coords.device)}
+
+    def latent_shape(self) -> tuple:
+        return (self.cfg.frames, 3, self.cfg.size, self.cfg.size)
+
+    @staticmethod
+    def encode_video(video: np.ndarray) -> torch.Tensor:
+        """uint8 (B, F, H, W, 3) -> x_1 (B, T, 3, H, W) in [-1, 1]: the generated frames 1..F-1."""
+        return torch.as_tensor(np.asarray(video)[:, 1:]).float().div(127.5).sub(1).permute(0, 1, 4, 2, 3)
+
+    @staticmethod
+    def decode(x_1: torch.Tensor, frame0: np.ndarray) -> np.ndarray:
+        """x_1 (B, T, 3, H, W) -> uint8 video (B, F, H, W, 3) with the given first frame prepended."""
+        gen = ((x_1.detach().float().clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 1, 3, 4, 2).cpu().numpy()
+        return np.concatenate([np.asarray(frame0)[:, None], gen], axis=1)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
+        B, T, C, H, W = x_t.shape
+        tokens, mask, pooled = self.text(c["ids"])
+        e = self.t_mlp(timestep_embedding(t, self.cfg.emb_dim)) + self.text_proj(pooled)      # (B, E)
+        emb = self.emb_out(e[:, None] + self.frame_emb[None, :T]).reshape(B * T, -1)          # (B*T, E)
+        f0 = c["frame0"][:, None].expand(B, T, C, H, W)
+        h = torch.cat([x_t, f0, self.coords.expand(B, T, 2, H, W)], dim=2).reshape(B * T, -1, H, W)
+        h1 = self.d1(self.inp(h), emb, T)                                   # (B*T, c1, 16, 16)
+        h2 = self.d2(self.down1(h1), emb, T)                                # (B*T, c2, 8, 8)
+        h3 = self.m1(self.down2(h2), emb, T)                                # (B*T, c3, 4, 4)
+        h3 = self.m2(self.mid_attn(h3, tokens, mask, T), emb, T)
+        u = self.u2(torch.cat([F_.interpolate(h3, scale_factor=2.0), h2], 1), emb, T)   # (B*T, c2, 8, 8)
+        u = self.u1(torch.cat([F_.interpolate(u, scale_factor=2.0), h1], 1), emb, T)    # (B*T, c1, 16, 16)
+        x1_hat = f0 + self.out(F_.silu(self.out_norm(u))).reshape(B, T, C, H, W)
+        one_minus_t = (1 - t).clamp(min=self.cfg.min_one_minus_t).reshape(B, 1, 1, 1, 1)
+        return (x1_hat - x_t) / one_minus_t  # velocity of the straight path through x_t that ends at x1_hat
+
+
+@torch.no_grad()
+def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
+    """Sample one video per (first frame, prompt) with the Euler ODE sampler (Eq. 2) from seeded noise x_0.
+    Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
+    g = torch.Generator().manual_seed(seed)
+    x_0 = torch.randn(len(texts), *model.latent_shape(), generator=g)
+    out = []
+    for i in range(0, len(texts), batch):
+        c = model.condition(frame0[i:i + batch], texts[i:i + batch])
+        x_1 = flow.sample_ode(lambda x, t: model(x, t, c), x_0[i:i + batch].to(c["frame0"].device), steps)
+        out.append(model.decode(x_1, frame0[i:i + batch]))
+    return np.concatenate(out)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# LoRA: W x + (alpha / r) B A x, B = 0 at init; the Demonstrator is the base with adapters off
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class LoRALinear(nn.Module):
+    """y = W x + b + (alpha / r) B (A x), A: (r, in) random, B: (out, r) zeros -> equal to the base at init."""
+
+    def __init__(self, base: nn.Linear, rank: int, alpha: float):
+        super().__init__()
+        self.base, self.scale, self.enabled = base, alpha / rank, True
+        self.lora_A = nn.Parameter(torch.randn(rank, base.in_features) / math.sqrt(base.in_features))
+        self.lora_B = nn.Parameter(torch.zeros(base.out_features, rank))
+
+    def forward(self, x):
+        y = self.base(x)
+        return y + self.scale * (x @ self.lora_A.T) @ self.lora_B.T if self.enabled else y
+
+
+def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str = r".*") -> list[str]:
+    """Wrap every nn.Linear whose qualified name matches `target` in a LoRALinear; freeze everything else.
+    Returns the wrapped names. (Table 3 uses rank 64 / alpha 128 on LTX-2's video attention.)"""
+    names = [n for n, m in model.named_modules() if isinstance(m, nn.Linear) and re.fullmatch(target, n)]
+    if not names:
+        raise ValueError(f"LoRA target {target!r} matches no Linear layer")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    for n in names:
+        parent_name, _, child = n.rpartition(".")
+        parent = model.get_submodule(parent_name) if parent_name else model
+        setattr(parent, child, LoRALinear(getattr(parent, child), rank, alpha))
+    return names
+
+
+def lora_parameters(model: nn.Module) -> list[nn.Parameter]:
+    return [p for n, p in model.named_parameters() if "lora_" in n]
+
+
+@contextlib.contextmanager
+def adapters_disabled(model: nn.Module):
+    """Inside this block the model is the Demonstrator: the same base weights with every adapter switched off."""
+    layers = [m for m in model.modules() if isinstance(m, LoRALinear)]
+    before = [m.enabled for m in layers]
+    for m in layers:
+        m.enabled = False
+    try:
+        yield model
+    finally:
+        for m, e in zip(layers, before):
+            m.enabled = e
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# backends and checkpoints
+# ----------------------------------------------------------------------------------------------------------------
+
+BACKENDS = {"toy": lambda **kw: ToyVideoFlow(ToyConfig(**kw))}
+SHIPPED_BASE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "checkpoints", "base.pt")
+
+
+def make_model(backend: str = "toy", **config) -> nn.Module:
+    """Return a freshly initialised model of the named backend. (The LTX-2 backend is added by a later issue.)"""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown model backend {backend!r}; available: {', '.join(BACKENDS)}")
+    return BACKENDS[backend](**config)
+
+
+def save_checkpoint(model: nn.Module, path: str, meta: dict | None = None) -> None:
+    """Write {backend, config, state_dict, meta} atomically (temp file + rename): a crash never leaves half a file."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    state = {"backend": model.backend, "config": asdict(model.cfg),
+             "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta or {}}
+    tmp = f"{path}.tmp{os.getpid()}"
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
+    """Load a model saved by save_checkpoint (default: the shipped base). Raises a one-line error for a missing,
+    corrupt or mismatched file."""
+    path = path or SHIPPED_BASE
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"checkpoint {path!r} does not exist"
+                                + (" (rebuild it with: python train.py --stage pretrain)" if path == SHIPPED_BASE else ""))
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        model = make_model(state["backend"], **state["config"])
+        model.load_state_dict(state["state_dict"])
+    except Exception as e:  # noqa: BLE001 -- any failure here means the file is not a usable checkpoint
+        raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {type(e).__name__}: "
+                         f"{str(e).splitlines()[0][:200]}") from None
+    return model, state.get("meta", {})

@@ -1,0 +1,104 @@
+"""models.py: text encoder, LoRA and the Demonstrator switch, checkpoints, the backend factory."""
+import numpy as np
+import pytest
+import torch
+
+import models
+import world
+
+
+@pytest.fixture(scope="module")
+def small():
+    torch.manual_seed(0)
+    return models.make_model("toy", width=16, emb_dim=32, text_dim=32)
+
+
+def _inputs(model, texts, seed=0):
+    rng = np.random.default_rng(seed)
+    scenes = [world.random_scene(rng) for _ in texts]
+    frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(len(texts), *model.latent_shape(), generator=g), torch.rand(len(texts), generator=g), \
+        model.condition(frame0, texts)
+
+
+def test_forward_shapes(small):
+    x, t, c = _inputs(small, ["red square moves left 2 for 3 frames then stops", ""])
+    assert small(x, t, c).shape == x.shape
+
+
+def test_text_encoder_is_order_aware(small):
+    ids = small.tokenizer(["[red square]: move to the blue circle", "[blue circle]: move to the red square"])
+    tokens, _, pooled = small.text(ids)
+    assert not torch.allclose(pooled[0], pooled[1], atol=1e-4)  # same bag of words, different order
+
+
+def test_unknown_word_is_a_clear_error(small):
+    with pytest.raises(ValueError, match="unknown word 'purple'"):
+        small.tokenizer(["[purple square]: move to the blue circle"])
+    with pytest.raises(ValueError, match="unknown agent 'purple square'"):
+        world.parse_task("[purple square]: move to the blue circle")
+    with pytest.raises(ValueError, match="unknown instruction"):
+        world.parse_task("[red square]: jump over the blue circle")
+
+
+def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training():
+    torch.manual_seed(0)
+    model = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
+    x, t, c = _inputs(model, ["red square moves left 2 for 3 frames then stops", "camera pans up 1 for 2 frames then stops"])
+    with torch.no_grad():
+        base = model(x, t, c)
+    names = models.add_lora(model, rank=4, alpha=8)
+    assert len(names) > 10
+    with torch.no_grad():
+        assert torch.equal(model(x, t, c), base)  # B = 0 at init
+    params = models.lora_parameters(model)
+    assert all(p.requires_grad for p in params)
+    assert not any(p.requires_grad for n, p in model.named_parameters() if "lora_" not in n)
+    before = {n: p.clone() for n, p in model.named_parameters() if "lora_" not in n}
+    opt = torch.optim.SGD(params, lr=0.1)
+    model(x, t, c).pow(2).mean().backward()
+    opt.step()
+    with torch.no_grad():
+        assert not torch.allclose(model(x, t, c), base)  # the Executor changed ...
+        with models.adapters_disabled(model):
+            assert torch.equal(model(x, t, c), base)     # ... the Demonstrator did not
+        assert not torch.allclose(model(x, t, c), base)  # and the adapters are back on after the block
+    assert all(torch.equal(p, before[n]) for n, p in model.named_parameters() if "lora_" not in n)
+
+
+def test_checkpoint_round_trip_and_clear_errors(tmp_path, small):
+    path = str(tmp_path / "m.pt")
+    models.save_checkpoint(small, path, {"note": "x"})
+    loaded, meta = models.load_checkpoint(path)
+    assert meta == {"note": "x"}
+    x, t, c = _inputs(small, ["nothing moves"])
+    with torch.no_grad():
+        assert torch.equal(loaded(x, t, c), small(x, t, c))
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        models.load_checkpoint(str(tmp_path / "missing.pt"))
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupt"):
+        models.load_checkpoint(str(tmp_path / "bad.pt"))
+    state = torch.load(path, weights_only=True)
+    state["config"]["width"] = 24  # a mismatched shape
+    torch.save(state, str(tmp_path / "mismatch.pt"))
+    with pytest.raises(ValueError, match="does not match"):
+        models.load_checkpoint(str(tmp_path / "mismatch.pt"))
+
+
+def test_unknown_backend_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown model backend 'nope'"):
+        models.make_model("nope")
+
+
+def test_generate_is_deterministic_and_independent_of_batching(small):
+    rng = np.random.default_rng(1)
+    scenes = [world.random_scene(rng) for _ in range(3)]
+    frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
+    texts = ["nothing moves"] * 3
+    a = models.generate(small, frame0, texts, steps=3, seed=5)
+    b = models.generate(small, frame0, texts, steps=3, seed=5, batch=2)
+    assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
+    assert np.array_equal(a, b)
+    assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated

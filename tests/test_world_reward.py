@@ -1,0 +1,135 @@
+"""world.py and the judges of reward.py on simulator-made videos, correct and with hand-made faults."""
+import numpy as np
+import pytest
+
+import reward
+import world
+from world import Plan, Scene, Sprite
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return world.bench_pairs(0.3)
+
+
+def _video(scene, plan):
+    return world.render(scene, world.simulate(scene, plan))
+
+
+def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
+    assert len(bench) == 200
+    again = world.bench_pairs(0.3)
+    assert [p.task.text for p in again] == [p.task.text for p in bench]
+    assert [p.task.text for p in world.bench_pairs(0.0)] == [p.task.text for p in bench]  # errors don't move tasks
+    fams = {f: sum(p.task.family == f for p in bench) for f in world.FAMILIES}
+    assert min(fams.values()) >= 40, fams
+    keys = world.bench_scene_keys()
+    assert all(world.scene_key(p.scene) not in keys for p in world.train_pairs(50, seed=1, error_rate=0.3))
+    videos, captions = world.pretraining_batch(np.random.default_rng(0), 64, exclude=keys)
+    assert videos.shape == (64, world.F, world.H, world.W, 3)
+
+
+def test_task_format_and_parse_round_trip(bench):
+    for p in bench:
+        assert p.task.text.startswith("[") and "]: " in p.task.text
+        assert world.parse_task(p.task.text) == p.task
+
+
+def test_toy_vlm_error_rate_and_oracle(bench):
+    rate = np.mean([p.error != "" for p in bench])
+    assert 0.2 < rate < 0.4
+    assert all((p.d_vlm == p.d_oracle) == (p.error == "") for p in bench)
+    assert all(p.d_vlm == p.d_oracle for p in world.bench_pairs(0.0))
+
+
+def test_the_vlm_reads_the_frame_not_the_simulator(bench):
+    for p in bench[:50]:
+        read = world.read_sprites(p.frame0)
+        assert sorted(world.scene_key(world.Scene(read))) == sorted(world.scene_key(p.scene))
+
+
+def test_judges_pass_correct_simulator_videos(bench):
+    res = {k: [] for k in reward.JUDGES}
+    for p in bench:
+        for k, j in reward.judge_all(_video(p.scene, p.plan_oracle), p.task.text).items():
+            res[k].append(j.yes)
+            assert (j.score > 0) == j.yes
+    for k, v in res.items():
+        assert np.mean(v) >= 0.98, (k, np.mean(v))
+
+
+def test_judges_fail_a_still_video_on_task_and_agent_but_not_consistency(bench):
+    res = {k: [] for k in reward.JUDGES}
+    for p in bench[:60]:
+        for k, j in reward.judge_all(_video(p.scene, Plan(None)), p.task.text).items():
+            res[k].append(j.yes)
+    assert not any(res["task"]) and not any(res["agent"]) and all(res["consistency"])
+
+
+SCENE = Scene([Sprite("red", "square", 2, 8), Sprite("blue", "circle", 12, 8), Sprite("green", "cross", 7, 2)])
+TASK = "[red square]: move to the blue circle"
+GOOD = Plan(0, 2, 0, 3)  # red square from x=2 to x=8: 4 px left of the blue circle
+
+
+def test_hand_made_scene_correct():
+    j = reward.judge_all(_video(SCENE, GOOD), TASK)
+    assert j["task"].yes and j["agent"].yes and j["consistency"].yes
+
+
+def test_teleport_is_caught():
+    v = _video(SCENE, GOOD)
+    teleport = _video(SCENE, Plan(None))
+    teleport[3:] = v[-1]  # the agent jumps 6 px between frames 2 and 3
+    teleport[1:3] = v[0]
+    j = reward.judge_all(teleport, TASK)
+    assert j["task"].yes and not j["consistency"].yes and "teleports red" in j["consistency"].why
+
+
+def test_duplicate_at_goal_fools_the_task_judge_but_not_consistency():
+    still = _video(SCENE, Plan(None))
+    goal = _video(SCENE, GOOD)[-1]
+    hacked = still.copy()
+    hacked[-1] = np.where((goal == world.COLOURS["red"]).all(-1, keepdims=True), goal, still[-1])  # a second red square
+    j = reward.judge_all(hacked, TASK)
+    assert j["task"].yes, "like a VLM looking at the end state, the task judge sees a red square at the goal"
+    assert not j["consistency"].yes and "duplicate red" in j["consistency"].why
+
+
+def test_wrong_agent_moving_is_caught():
+    wrong = _video(SCENE, Plan(2, 0, 2, 2))  # the green cross moves instead
+    j = reward.judge_all(wrong, TASK)
+    assert not j["agent"].yes and not j["task"].yes and j["consistency"].yes
+    both = world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
+                        - world.simulate(SCENE, Plan(None)))  # the agent and another sprite move
+    assert not reward.judge_agent(both, TASK).yes
+
+
+def test_vanishing_smear_and_new_object_are_caught():
+    v = _video(SCENE, GOOD)
+    gone = v.copy()
+    gone[4:] = np.where((v[4:] == world.COLOURS["green"]).all(-1, keepdims=True), 20, v[4:])
+    assert "vanishes green" in reward.judge_consistency(gone).why
+    smear = v.copy()
+    smear[3, 5:8, 5:8] = 110
+    assert "smear" in reward.judge_consistency(smear).why
+    new = v.copy()
+    new[2:, 12:15, 1:4] = world.COLOURS["yellow"]
+    assert "appears yellow" in reward.judge_consistency(new).why
+
+
+def test_first_person_pan():
+    task = "[first-person view]: centre the blue circle"
+    pan = _video(SCENE, Plan(-1, 2, 0, 2))  # blue circle from x=12 to x=8
+    j = reward.judge_all(pan, task)
+    assert j["task"].yes and j["agent"].yes and j["consistency"].yes
+    j = reward.judge_all(_video(SCENE, Plan(1, -2, 0, 2)), task)  # the circle walks to the centre by itself
+    assert j["task"].yes and not j["agent"].yes
+
+
+def test_no_judgment_is_none_not_a_crash():
+    v = _video(SCENE, GOOD)
+    assert reward.judge_task(v, "[yellow square]: move to the blue circle").yes is None  # agent not in the scene
+    assert reward.judge_consistency(v[:, :8]).yes is None                                 # wrong shape
+    bad = v.astype(float)
+    bad[2, 0, 0, 0] = np.nan
+    assert all(j.yes is None for j in reward.judge_all(bad, TASK).values())

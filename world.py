@@ -1,0 +1,480 @@
+"""The toy world: 2D moving sprites, its task generator (the toy VLM), and the WorldTasks-toy dataset.
+
+This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) and for the VLM g of Alg. 1 line 4:
+
+* A scene is 2-4 sprites (distinct colours, each a 3x3 shape) on a plain dark background, seen through a
+  16x16 camera. A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
+* A motion plan moves one mover -- a sprite, or the camera -- by (vx, vy) in {-2..2}^2 pixels per frame for
+  k in 1..5 frames, then stops. `simulate` + `render` turn (scene, plan) into a uint8 video.
+* A detailed description D spells out the plan ("red square moves left 2 up 1 for 3 frames then stops"); the base
+  model is pretrained on such captions (Sec. 3: the Demonstrator is conditioned on c_D = (I, D)).
+* A short task T says only *what* ("[red square]: move to the blue circle"), in the paper's "[agent]: instruction"
+  format (Sec. 4.1.1). Families, as in the paper's breakdown (Fig. 7):
+    navigation  -- "[A]: move to the X"           : A ends next to X (centres at most 4 px apart, Chebyshev)
+    positioning -- "[A]: stop level with the X"   : A ends on X's row
+                   "[A]: go to the left edge"     : A ends touching that edge of the view
+    perception  -- "[first-person view]: centre the X" : the camera pans until X is at the centre of the view
+* `propose_tasks` plays the VLM: it reads only the first frame (pixels), proposes feasible tasks with a solving
+  plan, and writes D for it. Like a real VLM it errs: a fraction `error_rate` of its descriptions are wrong in
+  direction, distance or agent. `error_rate=0` is the oracle.
+
+Simplifications: integer pixel motion, one mover per video, no pushing, no occlusion (plans never overlap sprites).
+
+Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of the oracle solution).
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+H = W = 16          # view size in pixels
+F = 6               # frames per video: frame 0 is the observation, 1..F-1 are generated
+MAX_SPEED = 2       # |vx|, |vy| <= MAX_SPEED pixels per frame
+CENTRE = (H - 1) / 2  # 7.5: the view centre, in pixel-centre coordinates
+
+COLOURS = {  # name -> RGB; pairwise distances > 150 so a judge can tell them apart by colour alone
+    "red": (225, 45, 45), "green": (40, 200, 60), "blue": (60, 100, 240), "yellow": (235, 220, 40),
+    "magenta": (215, 60, 215), "cyan": (50, 215, 220), "white": (240, 240, 240),
+}
+SHAPES = {  # name -> 3x3 mask
+    "square": np.ones((3, 3), bool),
+    "circle": np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool),
+    "cross": np.array([[1, 0, 1], [0, 1, 0], [1, 0, 1]], bool),
+    "triangle": np.array([[0, 1, 0], [1, 1, 1], [1, 1, 1]], bool),
+}
+# centroid of each shape's pixels minus the centre of its 3x3 box, (dx, dy): the judges subtract it from a blob's
+# centroid so that a triangle's centre is where its box centre is
+SHAPE_OFFSET = {k: (np.nonzero(m)[1].mean() - 1, np.nonzero(m)[0].mean() - 1) for k, m in SHAPES.items()}
+EDGES = ("left", "right", "top", "bottom")
+FIRST_PERSON = "first-person view"
+FAMILIES = ("navigation", "positioning", "perception")
+NUMBERS = ("0", "1", "2", "3", "4", "5")
+# Every word the prompts of this world can contain: the toy model's word-level tokenizer is built from this list,
+# so a prompt with any other word is rejected with a clear error rather than silently mapped to <unk>.
+VOCAB = sorted(set(
+    list(COLOURS) + list(SHAPES) + list(EDGES) + list(NUMBERS)
+    + "[ ] : moves camera pans left right up down for frames frame then stops nothing".split()
+    + "first-person view move to the stop level with go edge centre".split()))
+
+
+@dataclass
+class Sprite:
+    colour: str
+    shape: str
+    x: int  # centre column in view coordinates at frame 0
+    y: int  # centre row
+
+    @property
+    def name(self) -> str:
+        return f"{self.colour} {self.shape}"
+
+
+@dataclass
+class Scene:
+    sprites: list[Sprite]
+    background: int = 20  # grey level of the plain background
+
+    def names(self) -> list[str]:
+        return [s.name for s in self.sprites]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One mover (a sprite index, or -1 for the camera, or None for a still video) moves by (vx, vy) per frame
+    during frames 1..k, then stays."""
+    mover: int | None
+    vx: int = 0
+    vy: int = 0
+    k: int = 0
+
+
+@dataclass
+class Task:
+    family: str         # one of FAMILIES
+    kind: str           # move_to | level_with | edge | centre
+    agent: str          # sprite name or FIRST_PERSON
+    target: str         # sprite name, or an edge name for kind == "edge"
+
+    @property
+    def text(self) -> str:
+        phrase = {"move_to": "move to the {}", "level_with": "stop level with the {}",
+                  "edge": "go to the {} edge", "centre": "centre the {}"}[self.kind].format(self.target)
+        return f"[{self.agent}]: {phrase}"
+
+
+@dataclass
+class Pair:
+    """One WorldTasks-toy example: the observation, the task T, the toy VLM's description D (maybe wrong),
+    the error-free description, and the plan each describes."""
+    scene: Scene
+    task: Task
+    d_vlm: str
+    d_oracle: str
+    plan_vlm: Plan
+    plan_oracle: Plan
+    error: str = ""     # "" | direction | distance | agent
+    frame0: np.ndarray = field(default=None, repr=False)  # (H, W, 3) uint8
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# simulation and rendering
+# ----------------------------------------------------------------------------------------------------------------
+
+def simulate(scene: Scene, plan: Plan) -> np.ndarray:
+    """Sprite centres in view coordinates for every frame: (F, n_sprites, 2) int, [..., 0] = x, [..., 1] = y.
+    A camera pan by (vx, vy) shifts every sprite by (-vx, -vy) in the view."""
+    pos = np.array([[s.x, s.y] for s in scene.sprites])[None].repeat(F, 0)
+    if plan.mover is None or plan.k == 0:
+        return pos
+    steps = np.minimum(np.arange(F), plan.k)[:, None] * np.array([plan.vx, plan.vy])  # (F, 2)
+    if plan.mover == -1:
+        return pos - steps[:, None, :]
+    pos[:, plan.mover] += steps
+    return pos
+
+
+def render(scene: Scene, positions: np.ndarray) -> np.ndarray:
+    """Draw sprites at `positions` (F, n, 2) into a uint8 video (F, H, W, 3); sprites leaving the view are clipped."""
+    video = np.full((len(positions), H, W, 3), scene.background, np.uint8)
+    for f, frame_pos in enumerate(positions):
+        for s, (cx, cy) in zip(scene.sprites, frame_pos):
+            ys, xs = np.nonzero(SHAPES[s.shape])
+            ys, xs = ys + cy - 1, xs + cx - 1
+            keep = (ys >= 0) & (ys < H) & (xs >= 0) & (xs < W)
+            video[f, ys[keep], xs[keep]] = COLOURS[s.colour]
+    return video
+
+
+def plan_is_valid(scene: Scene, plan: Plan) -> bool:
+    """A moving sprite stays fully in view and never overlaps another sprite (so nothing is ever occluded)."""
+    if plan.mover is None or plan.mover == -1:
+        return True
+    pos = simulate(scene, plan)
+    p = pos[:, plan.mover]
+    if p.min() < 1 or p.max() > W - 2:
+        return False
+    others = np.delete(pos, plan.mover, axis=1)
+    return bool((np.abs(others - p[:, None]).max(-1) >= 3).all())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# language: descriptions D, tasks T
+# ----------------------------------------------------------------------------------------------------------------
+
+def describe(scene: Scene, plan: Plan) -> str:
+    """The detailed description D of a plan, e.g. "camera pans right 1 down 2 for 3 frames then stops"."""
+    if plan.mover is None or plan.k == 0:
+        return "nothing moves"
+    who = "camera pans" if plan.mover == -1 else f"{scene.sprites[plan.mover].name} moves"
+    parts = []
+    if plan.vx:
+        parts.append(f"{'right' if plan.vx > 0 else 'left'} {abs(plan.vx)}")
+    if plan.vy:
+        parts.append(f"{'down' if plan.vy > 0 else 'up'} {abs(plan.vy)}")
+    return f"{who} {' '.join(parts)} for {plan.k} {'frame' if plan.k == 1 else 'frames'} then stops"
+
+
+def vague_caption(scene: Scene, plan: Plan) -> str:
+    """A caption that says who moves but not how -- the kind of short caption real video data is full of."""
+    if plan.mover is None or plan.k == 0:
+        return "nothing moves"
+    return "camera pans" if plan.mover == -1 else f"{scene.sprites[plan.mover].name} moves"
+
+
+_TASK_RE = re.compile(r"^\[(?P<agent>[^\]]+)\]:\s*(?P<rest>.+)$")
+
+
+def parse_task(text: str) -> Task:
+    """Parse "[agent]: instruction" back into a Task. Raises ValueError naming the problem for anything else."""
+    m = _TASK_RE.match(text.strip().lower())
+    if not m:
+        raise ValueError(f"task {text!r} is not of the form '[agent]: instruction'")
+    agent, rest = m["agent"].strip(), m["rest"].strip()
+    names = {f"{c} {s}" for c in COLOURS for s in SHAPES}
+    if agent != FIRST_PERSON and agent not in names:
+        raise ValueError(f"unknown agent {agent!r} in task {text!r}; agents are '<colour> <shape>' with colour in "
+                         f"{sorted(COLOURS)} and shape in {sorted(SHAPES)}, or '{FIRST_PERSON}'")
+    patterns = [("navigation", "move_to", r"move to the (.+)"), ("positioning", "level_with", r"stop level with the (.+)"),
+                ("positioning", "edge", r"go to the (\w+) edge"), ("perception", "centre", r"centre the (.+)")]
+    for family, kind, pat in patterns:
+        mm = re.fullmatch(pat, rest)
+        if mm:
+            target = mm[1]
+            if (kind == "edge" and target not in EDGES) or (kind != "edge" and target not in names):
+                raise ValueError(f"unknown target {target!r} in task {text!r}")
+            if (kind == "centre") != (agent == FIRST_PERSON):
+                raise ValueError(f"task {text!r}: 'centre the X' is for [{FIRST_PERSON}] and only that")
+            return Task(family, kind, agent, target)
+    raise ValueError(f"unknown instruction {rest!r} in task {text!r}; known: 'move to the X', 'stop level with "
+                     f"the X', 'go to the <left|right|top|bottom> edge', 'centre the X'")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# reading frames (shared by the toy VLM and the judges in reward.py: both see pixels, never simulator state)
+# ----------------------------------------------------------------------------------------------------------------
+
+COLOUR_TOL = 90.0  # max RGB distance for a pixel to count as a palette colour
+
+
+@dataclass
+class Blob:
+    cx: float            # centroid column
+    cy: float            # centroid row
+    size: int            # pixels
+    touches_border: bool
+    box: tuple           # (x_min, y_min, x_max, y_max)
+
+
+def colour_masks(frames: np.ndarray) -> dict[str, np.ndarray]:
+    """(..., H, W, 3) uint8 or float in [0, 255] -> {colour: bool mask (..., H, W)} by distance to the palette."""
+    fr = frames.astype(np.float32)
+    return {c: np.linalg.norm(fr - np.array(rgb, np.float32), axis=-1) < COLOUR_TOL for c, rgb in COLOURS.items()}
+
+
+def blobs(mask: np.ndarray) -> list[Blob]:
+    """8-connected components of a (H, W) bool mask, largest first."""
+    seen = np.zeros_like(mask)
+    out = []
+    for y0, x0 in zip(*np.nonzero(mask)):
+        if seen[y0, x0]:
+            continue
+        stack, pix = [(y0, x0)], []
+        seen[y0, x0] = True
+        while stack:
+            y, x = stack.pop()
+            pix.append((y, x))
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    yy, xx = y + dy, x + dx
+                    if 0 <= yy < H and 0 <= xx < W and mask[yy, xx] and not seen[yy, xx]:
+                        seen[yy, xx] = True
+                        stack.append((yy, xx))
+        p = np.array(pix)
+        out.append(Blob(float(p[:, 1].mean()), float(p[:, 0].mean()), len(p),
+                        bool((p == 0).any() or (p[:, 0] == H - 1).any() or (p[:, 1] == W - 1).any()),
+                        (int(p[:, 1].min()), int(p[:, 0].min()), int(p[:, 1].max()), int(p[:, 0].max()))))
+    return sorted(out, key=lambda b: -b.size)
+
+
+def read_sprites(frame: np.ndarray) -> list[Sprite]:
+    """Find the sprites of a clean first frame (H, W, 3): one per palette colour with a blob of >= 4 pixels.
+    The centre is the centre of the blob's bounding box; the shape is read off the 3x3 mask around it."""
+    found = []
+    for colour, mask in colour_masks(frame).items():
+        bs = blobs(mask)
+        if not bs or bs[0].size < 4:
+            continue
+        x0, y0, x1, y1 = bs[0].box
+        cx, cy = (x0 + x1) // 2, (y0 + y1) // 2
+        patch = np.zeros((3, 3), bool)
+        for dy in range(3):
+            for dx in range(3):
+                yy, xx = cy - 1 + dy, cx - 1 + dx
+                patch[dy, dx] = 0 <= yy < H and 0 <= xx < W and mask[yy, xx]
+        shape = max(SHAPES, key=lambda s: (SHAPES[s] == patch).sum())
+        # the centre of the triangle's bounding box is one row below its pixel mean
+        found.append(Sprite(colour, shape, cx, cy))
+    return found
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the toy VLM: tasks and descriptions from a first frame (Alg. 1 line 4, Sec. 4.1.1)
+# ----------------------------------------------------------------------------------------------------------------
+
+ALL_MOTIONS = [(vx, vy, k) for vx in range(-MAX_SPEED, MAX_SPEED + 1) for vy in range(-MAX_SPEED, MAX_SPEED + 1)
+               for k in range(1, F) if (vx, vy) != (0, 0)]
+
+
+def task_margin(kind: str, target: str, agent_xy, target_xy) -> float:
+    """How far inside (> 0) or outside (< 0) the end-state rule of a task the final centres are, in pixels.
+      move_to    : Chebyshev distance between agent and target centres <= 4 (side by side, 0-1 px gap)
+      level_with : |y_agent - y_target| <= 0.5 (same row)
+      edge       : the agent's 3x3 box touches that edge (centre x <= 1, etc.)
+      centre     : the target centre within 1 px of the view centre (7.5, 7.5) on both axes
+    The planner needs margin >= 0 on integer centres; the judges (reward.py) apply the same rule to centres read
+    from generated frames, with a small slack for sub-pixel blur."""
+    if kind == "centre":
+        return 1.0 - float(np.abs(np.asarray(target_xy, float) - CENTRE).max())
+    a = np.asarray(agent_xy, float)
+    if kind == "move_to":
+        return 4.0 - float(np.abs(a - np.asarray(target_xy, float)).max())
+    if kind == "level_with":
+        return 0.5 - abs(a[1] - float(target_xy[1]))
+    return {"left": 1.0 - a[0], "right": a[0] - (W - 2), "top": 1.0 - a[1], "bottom": a[1] - (H - 2)}[target]
+
+
+def task_solved_by(scene: Scene, task: Task, end: np.ndarray) -> bool:
+    """The end-state rule on exact final sprite centres `end` (n, 2), as the planner sees them."""
+    names = scene.names()
+    tgt = end[names.index(task.target)] if task.kind != "edge" else None
+    agent = end[names.index(task.agent)] if task.kind != "centre" else None
+    return task_margin(task.kind, task.target, agent, tgt) >= 0
+
+
+def candidate_tasks(scene: Scene) -> list[Task]:
+    names = scene.names()
+    tasks = []
+    for a in names:
+        for t in names:
+            if t != a:
+                tasks += [Task("navigation", "move_to", a, t), Task("positioning", "level_with", a, t)]
+        tasks += [Task("positioning", "edge", a, e) for e in EDGES]
+    tasks += [Task("perception", "centre", FIRST_PERSON, t) for t in names]
+    return tasks
+
+
+def solutions(scene: Scene, task: Task) -> list[Plan]:
+    """All constant-velocity plans that solve `task`, are valid, and stop exactly when they solve it (they are not
+    solved one frame earlier). Empty if the task is already solved at frame 0."""
+    names = scene.names()
+    start = simulate(scene, Plan(None))[0]
+    if task_solved_by(scene, task, start):
+        return []
+    mover = -1 if task.agent == FIRST_PERSON else names.index(task.agent)
+    out = []
+    for vx, vy, k in ALL_MOTIONS:
+        if task.kind == "level_with" and vx != 0:
+            continue  # "stop level with": a vertical move, as a person would read it
+        plan = Plan(mover, vx, vy, k)
+        pos = simulate(scene, plan)
+        if (task_solved_by(scene, task, pos[k]) and not task_solved_by(scene, task, pos[k - 1])
+                and plan_is_valid(scene, plan)):
+            out.append(plan)
+    return out
+
+
+def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, str]:
+    """A plausible VLM mistake: wrong direction, wrong distance, or wrong agent; always a valid, different plan."""
+    n = len(scene.sprites)
+    for _ in range(50):
+        kind = rng.choice(["direction", "distance", "agent"])
+        if kind == "direction":
+            vx, vy = [(-plan.vx, plan.vy), (plan.vx, -plan.vy), (plan.vy, plan.vx), (-plan.vx, -plan.vy)][rng.integers(4)]
+            new = Plan(plan.mover, vx, vy, plan.k)
+        elif kind == "distance":
+            new = Plan(plan.mover, plan.vx, plan.vy, int(rng.integers(1, F)))
+        else:
+            movers = [m for m in [-1, *range(n)] if m != plan.mover]
+            new = Plan(int(rng.choice(movers)), plan.vx, plan.vy, plan.k)
+        if new != plan and plan_is_valid(scene, new) and (new.vx, new.vy) != (0, 0):
+            return new, str(kind)
+    return plan, ""
+
+
+def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0):
+    """The toy VLM g(I) of Alg. 1 line 4: read the first frame, propose up to `n` feasible tasks (one family drawn
+    uniformly among those feasible here, then a task, then one of its solving plans), and for each return
+    (task, D, D_oracle, plan, plan_oracle, error). With probability `error_rate` D describes a corrupted plan."""
+    scene = Scene(read_sprites(frame0), background=int(np.median(frame0)))
+    by_family: dict[str, list[tuple[Task, list[Plan]]]] = {}
+    for task in candidate_tasks(scene):
+        sols = solutions(scene, task)
+        if sols:
+            by_family.setdefault(task.family, []).append((task, sols))
+    out = []
+    for _ in range(n):
+        if not by_family:
+            break
+        fam = sorted(by_family)[rng.integers(len(by_family))]
+        task, sols = by_family[fam][rng.integers(len(by_family[fam]))]
+        plan = sols[rng.integers(len(sols))]
+        plan_vlm, err = corrupt(scene, plan, rng) if rng.random() < error_rate else (plan, "")
+        out.append((scene, task, describe(scene, plan_vlm), describe(scene, plan), plan_vlm, plan, err))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# scenes and the WorldTasks-toy dataset
+# ----------------------------------------------------------------------------------------------------------------
+
+def random_scene(rng: np.random.Generator) -> Scene:
+    """2-4 sprites with distinct colours, fully in view, at least one pixel apart."""
+    n = int(rng.integers(2, 5))
+    colours = rng.choice(list(COLOURS), n, replace=False)
+    while True:
+        xy = rng.integers(1, W - 1, size=(n, 2))
+        gaps = np.abs(xy[:, None] - xy[None]).max(-1) + np.eye(n, dtype=int) * 99
+        if gaps.min() >= 4:
+            break
+    return Scene([Sprite(str(c), str(rng.choice(list(SHAPES))), int(x), int(y)) for c, (x, y) in zip(colours, xy)],
+                 background=int(rng.integers(0, 41)))
+
+
+def scene_key(scene: Scene) -> tuple:
+    return tuple(sorted((s.colour, s.shape, s.x, s.y) for s in scene.sprites))
+
+
+BENCH_SEED = 2606_12072
+
+
+def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None) -> list[Pair]:
+    """n task pairs, each on its own random scene (scenes in `exclude` are skipped)."""
+    rng = np.random.default_rng(seed)
+    pairs = []
+    while len(pairs) < n:
+        scene = random_scene(rng)
+        if exclude and scene_key(scene) in exclude:
+            continue
+        frame0 = render(scene, simulate(scene, Plan(None)))[0]
+        proposals = propose_tasks(frame0, rng, 1, error_rate)
+        for sc, task, d, d_or, p, p_or, err in proposals:
+            pairs.append(Pair(sc, task, d, d_or, p, p_or, err, frame0))
+    return pairs
+
+
+def bench_pairs(error_rate: float, n: int = 200) -> list[Pair]:
+    """The fixed WorldTasks-toy bench split (Sec. 4.1.2): 200 pairs on 200 scenes, from a fixed seed.
+    The scenes and tasks do not depend on `error_rate`; only which descriptions are corrupted does."""
+    return make_pairs(n, BENCH_SEED, error_rate)
+
+
+def bench_scene_keys() -> set:
+    return {scene_key(p.scene) for p in bench_pairs(0.0)}
+
+
+def train_pairs(n: int, seed: int, error_rate: float) -> list[Pair]:
+    """Training pairs on scenes disjoint from the bench split."""
+    return make_pairs(n, seed, error_rate, exclude=bench_scene_keys())
+
+
+def random_plan(scene: Scene, rng: np.random.Generator) -> Plan:
+    """A pretraining motion: a still video (10%), a camera pan (25%) or one sprite moving (65%), always valid."""
+    u = rng.random()
+    if u < 0.10:
+        return Plan(None)
+    while True:
+        vx, vy, k = ALL_MOTIONS[rng.integers(len(ALL_MOTIONS))]
+        plan = Plan(-1 if u < 0.35 else int(rng.integers(len(scene.sprites))), vx, vy, k)
+        if plan_is_valid(scene, plan):
+            return plan
+
+
+def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.15, p_empty: float = 0.10,
+                      exclude: set | None = None):
+    """World videos for pretraining the base model, captioned like D (Sec. 3): with probability p_vague a caption
+    that names the mover but not the motion, with p_empty an empty caption (as video models are trained for
+    classifier-free guidance). Returns (videos uint8 (B, F, H, W, 3), captions list[str])."""
+    videos, captions = [], []
+    while len(videos) < batch:
+        scene = random_scene(rng)
+        if exclude and scene_key(scene) in exclude:
+            continue
+        plan = random_plan(scene, rng)
+        videos.append(render(scene, simulate(scene, plan)))
+        u = rng.random()
+        captions.append("" if u < p_empty else vague_caption(scene, plan) if u < p_empty + p_vague
+                        else describe(scene, plan))
+    return np.stack(videos), captions
+
+
+if __name__ == "__main__":
+    from PIL import Image
+    pairs = bench_pairs(0.0)[:6]
+    rows = [np.concatenate(list(render(p.scene, simulate(p.scene, p.plan_oracle))), axis=1) for p in pairs]
+    img = np.concatenate(rows, axis=0)
+    Image.fromarray(img).resize((img.shape[1] * 8, img.shape[0] * 8), Image.NEAREST).save("world_examples.png")
+    for p in pairs:
+        print(f"{p.task.family:12s} T = {p.task.text!r:45s} D = {p.d_oracle!r}")
+    print("wrote world_examples.png")
