@@ -33,11 +33,14 @@ def flow_matching_loss(v_theta: VelocityField, x_0: torch.Tensor, x_1: torch.Ten
     """App. A.9: L_FM(theta) = E_{x_0, x_1, t} || v_theta(x_t, t) - (x_1 - x_0) ||^2.
 
     Reduction: the squared error is averaged over all elements (pixels, channels, frames) and the batch, so the
-    loss does not grow with the video size. `weight` (B,) optionally weights each sample (AWM uses this later).
-    Its minimiser is the conditional expectation E[x_1 - x_0 | x_t]."""
+    loss does not grow with the video size. `weight` optionally weights each sample, shape (B,), or each element,
+    shape broadcastable to x_1; a positive weight keeps the minimiser, the conditional expectation
+    E[x_1 - x_0 | x_t], and changes only where the model spends its capacity."""
     x_t = interpolate(x_0, x_1, t)
-    err = (v_theta(x_t, t) - (x_1 - x_0)).pow(2).flatten(1).mean(1)  # (B,)
-    return (err * weight).mean() if weight is not None else err.mean()
+    err = (v_theta(x_t, t) - (x_1 - x_0)).pow(2)  # (B, ...)
+    if weight is not None:
+        err = err * (_bcast(weight, err) if weight.dim() == 1 else weight)
+    return err.mean()
 
 
 def time_grid(steps: int, device=None) -> torch.Tensor:

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import world
-from world import COLOURS, FIRST_PERSON, H, MAX_SPEED, SHAPE_OFFSET, W
+from world import COLOURS, FIRST_PERSON, H, SHAPE_OFFSET, W
 
 SLACK = 0.35        # px of extra tolerance on the task rules for sub-pixel blur in generated frames
-MAX_STEP = 2.6      # px per frame (Chebyshev) above which a move is a teleport; the world's speed limit is 2
+MAX_STEP = world.MAX_SPEED + 0.6  # px per frame (Chebyshev) above which a move is a teleport
 MIN_BLOB = 3        # px: smaller specks of a colour are ignored as noise
 SCORE_CLIP = 6.0    # graded scores live in [-6, 6], like a confident VLM's log-odds
 
@@ -151,7 +151,7 @@ def judge_consistency(video, task_text: str | None = None) -> Judgment:
     """Fig. 17: physically consistent? Counts violations (each kind once per sprite), yes iff none:
       appears   -- a blob of a colour that frame 0 does not have
       duplicate -- a second blob of a sprite's colour
-      vanishes  -- a sprite missing in a frame although it was last seen away from the border
+      vanishes  -- a sprite missing in a frame although it was last seen more than 1 px from the border
       reshaped  -- a sprite (away from the border) whose pixel count leaves [0.6, 1.6] x its frame-0 count
       teleports -- a centre moving more than MAX_STEP px between consecutive frames
       smear     -- more than 4 pixels in a frame that are neither background nor a palette colour
@@ -177,8 +177,8 @@ def judge_consistency(video, task_text: str | None = None) -> Judgment:
                 bad.add(("duplicate", c))
             prev = r.blobs[f - 1][c]
             if not bs:
-                x0, y0, x1, y1 = last[c].box  # leaving the view is fine for a sprite last seen near its border
-                if min(x0, y0) > MAX_SPEED and max(x1, y1) < W - 1 - MAX_SPEED:
+                x0, y0, x1, y1 = last[c].box  # leaving the view is fine for a sprite last seen at its border
+                if min(x0, y0) > 1 and max(x1, y1) < W - 2:
                     bad.add(("vanishes", c))
                 continue
             last[c] = bs[0]

@@ -1,18 +1,24 @@
-"""Training entry point. Stages so far:
+"""Training entry point: one Args dataclass, one stage per function.
 
   pretrain -- build the toy base model (the stand-in for downloaded LTX-2 weights, Sec. 3 "Setup"): rectified-flow
               training (App. A.9, flow.flow_matching_loss) of ToyVideoFlow on world videos captioned like the
               detailed description D, with a share of vague captions ("red square moves") and empty captions, as
               real video models see. It never sees a short task T. Writes checkpoints/base.pt (EMA weights).
+  distill  -- self-distillation of the Demonstrator (base, adapters off, c_D = (I, D)) into the Executor (base +
+              LoRA, c_E = (I, T)), distill.py: --variant off (Eq. 3), on (Eq. 5 = the anchor of Eq. 11 on the
+              Executor's own states), dmd (App. A.2.1). Several variants, comma-separated, run one after another
+              from the same base, and are plotted together (the paper's Fig. 4 left).
 
-  python train.py --stage pretrain --seed 0            # rebuilds checkpoints/base.pt (~10 min on 2 CPU cores)
-  python train.py --toy                                # the laptop preset (pretraining until the WMSD stages land)
+  python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
+  python train.py --toy                              # laptop preset: on-policy self-distillation from the base
+  python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
 
-Self-distillation (distill.py) and RL (rl.py) stages are added by later issues.
+RL from the judges (rl.py, Eqs. 10 and 12) is added by a later issue.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import dataclasses
 import json
@@ -25,6 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+import bench
+import distill
 import flow
 import models
 import world
@@ -32,28 +40,32 @@ import world
 
 @dataclass
 class Args:
-    stage: str = "pretrain"
-    """which stage to run: pretrain"""
+    stage: str = "distill"
+    """which stage to run: pretrain | distill"""
     toy: bool = False
     """the laptop preset: the toy world and model on CPU (the values below are already the toy's)"""
     seed: int = 0
     """one seed for python, numpy and torch; a rerun with the same seed gives the same numbers on CPU"""
     threads: int = 2
     """torch CPU threads"""
-    out: str = models.SHIPPED_BASE
-    """where the trained checkpoint goes"""
-    log: str = "runs/pretrain.jsonl"
-    """metrics, one JSON object per logged step"""
-    steps: int = 1500
-    """optimizer steps"""
-    batch: int = 32
-    """videos per step"""
-    lr: float = 1e-3
-    """AdamW learning rate (linear warm-up over 100 steps, cosine decay to 10%)"""
+    out: str = ""
+    """where the trained checkpoint goes (default: checkpoints/base.pt for pretrain, runs/<variant>.pt for distill)"""
+    run_dir: str = "runs"
+    """metrics (JSON lines), plots and GIFs go here"""
+    # ---- pretrain ----
+    pretrain_steps: int = 2000
+    """pretraining optimizer steps"""
+    pretrain_batch: int = 32
+    """pretraining videos per step"""
+    pretrain_lr: float = 1e-3
+    """pretraining AdamW learning rate (linear warm-up over 100 steps, cosine decay to 10%)"""
     weight_decay: float = 0.0
-    """AdamW weight decay"""
+    """pretraining AdamW weight decay"""
     ema: float = 0.995
     """EMA decay of the weights that are saved"""
+    motion_weight: float = 10.0
+    """loss weight on pixels that differ from the first frame (moving sprites, pans); others weigh 1. Motion is
+    1-3% of the pixels and is otherwise learned last (../shared/notes/toy-prototype.md)"""
     p_vague: float = 0.15
     """share of captions that name the mover but not the motion"""
     p_empty: float = 0.10
@@ -62,9 +74,35 @@ class Args:
     """steps between progress lines"""
     width: int = 32
     """U-Net channels at full resolution"""
-    x_weighting: bool = True
-    """weight the velocity loss by (1 - t)^2, i.e. the error of the predicted clean video x1_hat; the plain velocity
-    loss puts weight 1/(1-t)^2 on nearly clean states and learns motion (decided at small t) slowly"""
+    # ---- distill (and later RL) ----
+    init: str = ""
+    """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
+    variant: str = "on"
+    """self-distillation objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1)"""
+    steps: int = 100
+    """Executor (LoRA) optimizer steps per variant"""
+    batch: int = 32
+    """(image, T, D) triples per step"""
+    lr: float = 1e-3
+    """Adam learning rate of the LoRA weights (Table 3 uses 2e-4 on LTX-2; the toy's LoRA is tiny)"""
+    lora_rank: int = 8
+    """LoRA rank (Table 3: 64 on LTX-2)"""
+    lora_alpha: float = 16.0
+    """LoRA alpha (Table 3: 128 = 2 x rank)"""
+    sample_steps: int = 10
+    """Euler steps of every rollout, in training and evaluation"""
+    error_rate: float = 0.3
+    """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
+    train_pairs: int = 512
+    """(image, T, D) training pairs drawn from the toy VLM, on scenes disjoint from the bench"""
+    eval_every: int = 10
+    """steps between bench evaluations"""
+    eval_n: int = 200
+    """bench pairs per evaluation"""
+    loss_power: float = 1.0
+    """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
+    puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
+    clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
 
 
 def parse_args(argv=None) -> Args:
@@ -77,11 +115,19 @@ def parse_args(argv=None) -> Args:
         else:
             typ = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
             p.add_argument(f"--{f.name}", type=typ, default=f.default, help=docs.get(f.name),
-                           choices=["pretrain"] if f.name == "stage" else None)
+                           choices=list(STAGES) if f.name == "stage" else None)
     args = Args(**vars(p.parse_args(argv)))
-    for name in ("steps", "batch", "log_every", "threads", "width"):
+    for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
+                 "sample_steps", "train_pairs", "eval_every", "eval_n"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    bad = [v for v in args.variant.split(",") if v not in VARIANTS]
+    if bad:
+        p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
+    if not 0 <= args.error_rate <= 1:
+        p.error("--error_rate must lie in [0, 1]")
+    if args.eval_n > 200:
+        p.error("--eval_n must be at most 200 (the bench size)")
     if not 0 <= args.p_vague + args.p_empty <= 1:
         p.error("--p_vague + --p_empty must lie in [0, 1]")
     if not 0 <= args.ema < 1:
@@ -121,49 +167,202 @@ def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     model = models.make_model("toy", width=args.width)
     ema = copy.deepcopy(model).requires_grad_(False)
-    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (
-        0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * min(s / args.steps, 1.0)))))
+        0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * min(s / args.pretrain_steps, 1.0)))))
     exclude = world.bench_scene_keys()  # the bench's scenes are never seen in training
-    print(f"pretraining {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M parameters for {args.steps} steps")
-    os.makedirs(os.path.dirname(args.log) or ".", exist_ok=True)
-    logf, start, run_loss = open(args.log, "w"), time.time(), []
-    for step in range(1, args.steps + 1):
-        videos, captions = world.pretraining_batch(rng, args.batch, args.p_vague, args.p_empty, exclude)
+    steps, out = args.pretrain_steps, args.out or models.SHIPPED_BASE
+    print(f"pretraining {sum(p.numel() for p in model.parameters()) / 1e6:.2f}M parameters for {steps} steps")
+    os.makedirs(args.run_dir, exist_ok=True)
+    logf, start, run_loss = open(os.path.join(args.run_dir, "pretrain.jsonl"), "w"), time.time(), []
+    for step in range(1, steps + 1):
+        videos, captions = world.pretraining_batch(rng, args.pretrain_batch, args.p_vague, args.p_empty, exclude)
         x_1 = model.encode_video(videos)                       # (B, T, 3, H, W) data
         c = model.condition(videos[:, 0], captions)
         x_0 = torch.randn_like(x_1)                            # noise
-        t = torch.rand(args.batch)                             # t ~ U[0, 1]
-        w = (1 - t).clamp(min=model.cfg.min_one_minus_t) ** 2 if args.x_weighting else None
+        t = torch.rand(len(videos))                            # t ~ U[0, 1]
+        moving = (x_1 - c["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05        # (B, T, 1, H, W)
+        w = (1 - t).clamp(min=model.cfg.min_one_minus_t).reshape(-1, 1, 1, 1, 1) ** args.loss_power \
+            * (1 + (args.motion_weight - 1) * moving.float())
         loss = flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        with torch.no_grad():
+        with torch.no_grad():  # EMA with warm-up, so early weights do not linger in the average
+            decay = min(args.ema, step / (step + 10))
             for pe, p in zip(ema.parameters(), model.parameters()):
-                pe.lerp_(p, 1 - args.ema)
+                pe.lerp_(p, 1 - decay)
         run_loss.append(loss.item())
-        if step % args.log_every == 0 or step == args.steps:
+        if step % args.log_every == 0 or step == steps:
             rec = {"step": step, "loss": float(np.mean(run_loss)), "grad_norm": float(gnorm),
                    "lr": sched.get_last_lr()[0], "seconds": time.time() - start}
             logf.write(json.dumps(rec) + "\n")
             logf.flush()
-            print(f"step {step:5d}/{args.steps} | loss {rec['loss']:.4f} | grad {rec['grad_norm']:.2f} | "
-                  f"{_eta(start, step, args.steps)}", flush=True)
+            print(f"step {step:5d}/{steps} | loss {rec['loss']:.4f} | grad {rec['grad_norm']:.2f} | "
+                  f"{_eta(start, step, steps)}", flush=True)
             run_loss = []
     minutes = (time.time() - start) / 60
-    models.save_checkpoint(ema, args.out, {"stage": "pretrain", "args": dataclasses.asdict(args),
-                                           "minutes": round(minutes, 2)})
-    print(f"saved {args.out} after {minutes:.1f} min")
+    models.save_checkpoint(ema, out, {"stage": "pretrain", "args": dataclasses.asdict(args),
+                                      "minutes": round(minutes, 2)})
+    print(f"saved {out} after {minutes:.1f} min")
     return {"minutes": minutes}
+
+
+# ================================================================================================================
+# stage: self-distillation (Sec. 3, distill.py)
+# ================================================================================================================
+
+VARIANTS = ("off", "on", "dmd")
+
+
+def _batch(pairs: list, idx) -> tuple:
+    """(first frames uint8 (B, H, W, 3), tasks T, the toy VLM's descriptions D) of the chosen pairs."""
+    ps = [pairs[i] for i in idx]
+    return np.stack([p.frame0 for p in ps]), [p.task.text for p in ps], [p.d_vlm for p in ps]
+
+
+def evaluate_executor(model, args: Args, demonstrator: bool = False) -> dict:
+    """Bench scores of the Executor given T -- or, with demonstrator=True, of the Demonstrator (adapters off)
+    given the toy VLM's D. Same noise seed (0) every time, so curves compare like with like."""
+    ctx = models.adapters_disabled(model) if demonstrator else contextlib.nullcontext()
+    with ctx:
+        res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else "task", args.eval_n, seed=0,
+                                        error_rate=args.error_rate, steps=args.sample_steps)
+    return res
+
+
+def distill_variant(args: Args, variant: str, pairs: list, logf) -> tuple:
+    """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
+    steps. Returns (model, list of eval records)."""
+    seed_everything(args.seed, args.threads)
+    gen = torch.Generator().manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    model, _ = models.load_checkpoint(args.init or None)
+    models.add_lora(model, args.lora_rank, args.lora_alpha)
+    params = models.lora_parameters(model)
+    opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
+    fake, fake_opt = None, None
+    if variant == "dmd":
+        fake = distill.make_fake_score(model, args.lora_rank, args.lora_alpha)
+        fake_opt = torch.optim.Adam(models.lora_parameters(fake), lr=args.lr)
+    evals, start = [], time.time()
+
+    def log_eval(step):
+        res = evaluate_executor(model, args)
+        rec = {"variant": variant, "step": step, **{k: res[k] for k in ("task", "agent", "consistency", "avg")},
+               "seconds": time.time() - start}
+        evals.append(rec)
+        logf.write(json.dumps({"eval": True, **rec}) + "\n")
+        logf.flush()
+        print(f"[{variant}] eval step {step:4d} | task {rec['task']:.3f} agent {rec['agent']:.3f} "
+              f"consistency {rec['consistency']:.3f} avg {rec['avg']:.3f}", flush=True)
+
+    log_eval(0)
+    for step in range(1, args.steps + 1):
+        t0 = time.time()
+        frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.batch, replace=False))
+        c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
+        x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
+        extra = {}
+        if variant == "off":    # Eq. 3 on the Demonstrator's states
+            loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
+                                           c_E, c_D, gen)
+        elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
+            loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, c_D, gen)
+        else:                   # App. A.2.1: generator through the Executor's sampler, then the fake score
+            x = flow.sample_ode(lambda x, t: model(x, t, c_E), x_0, args.sample_steps)
+            loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
+            fake_loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E, gen)
+            fake_opt.zero_grad(set_to_none=True)
+            fake_loss.backward()
+            fake_opt.step()
+            extra["fake_loss"] = fake_loss.item()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
+        opt.step()
+        rec = {"variant": variant, "step": step, "loss": loss.item(), "grad_norm": float(gnorm),
+               "step_seconds": time.time() - t0, **extra}
+        logf.write(json.dumps(rec) + "\n")
+        if step % args.log_every == 0 or step == args.steps:
+            print(f"[{variant}] step {step:4d}/{args.steps} | loss {rec['loss']:.5f} | grad {rec['grad_norm']:.3f} | "
+                  f"{rec['step_seconds']:.2f} s/step | {_eta(start, step, args.steps)}", flush=True)
+        if step % args.eval_every == 0:
+            log_eval(step)
+    return model, evals
+
+
+def distill_stage(args: Args) -> dict:
+    """Run each variant from the same base; plot task score vs step (Fig. 4 left) with the Demonstrator and the
+    base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
+    seed_everything(args.seed, args.threads)
+    os.makedirs(args.run_dir, exist_ok=True)
+    t0 = time.time()
+    pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+    print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}) in {time.time() - t0:.0f} s")
+    base, _ = models.load_checkpoint(args.init or None)
+    demo = evaluate_executor(base, args, demonstrator=True)
+    print(f"Demonstrator (base given the toy VLM's D): task {demo['task']:.3f} agent {demo['agent']:.3f} "
+          f"consistency {demo['consistency']:.3f}")
+    variants = args.variant.split(",")
+    results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {}}
+    with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
+        for v in variants:
+            model, evals = distill_variant(args, v, pairs, logf)
+            results["variants"][v] = evals
+            out = args.out if (args.out and len(variants) == 1) else os.path.join(args.run_dir, f"executor_{v}.pt")
+            models.save_checkpoint(model, out, {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)})
+            write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
+    plot_fig4_left(results, os.path.join(args.run_dir, "fig4_left.png"))
+    with open(os.path.join(args.run_dir, "distill_summary.json"), "w") as f:
+        json.dump(results, f, indent=1)
+    print(f"wrote {args.run_dir}/fig4_left.png, distill_summary.json, rollouts_*.gif")
+    return results
+
+
+def plot_fig4_left(results: dict, path: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, key in zip(axes, ("task", "avg")):
+        for v, evals in results["variants"].items():
+            ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor, {v}")
+        ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+        ax.set_xlabel("training step")
+        ax.set_ylabel(f"bench {key} score (Executor given T)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
+    """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (same noise)."""
+    from PIL import Image
+    pairs = world.bench_pairs(args.error_rate)[:n]
+    frame0 = np.stack([p.frame0 for p in pairs])
+    with models.adapters_disabled(model):
+        demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0)
+    exe = models.generate(model, frame0, [p.task.text for p in pairs], args.sample_steps, seed=0)
+    sep = np.full((n, world.F, world.H, 2, 3), 255, np.uint8)
+    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
+    frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(world.F)]
+    imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
+    imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
+
+
+STAGES = {"pretrain": pretrain, "distill": distill_stage}
 
 
 def main(argv=None):
     args = parse_args(argv)
     print("config: " + json.dumps(dataclasses.asdict(args)))
-    {"pretrain": pretrain}[args.stage](args)
+    STAGES[args.stage](args)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) an
 
 * A scene is 2-4 sprites (distinct colours, each a 3x3 shape) on a plain dark background, seen through a
   16x16 camera. A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
-* A motion plan moves one mover -- a sprite, or the camera -- by (vx, vy) in {-2..2}^2 pixels per frame for
+* A motion plan moves one mover -- a sprite, or the camera -- by (vx, vy) in {-1, 0, 1}^2 pixels per frame for
   k in 1..5 frames, then stops. `simulate` + `render` turn (scene, plan) into a uint8 video.
 * A detailed description D spells out the plan ("red square moves left 2 up 1 for 3 frames then stops"); the base
   model is pretrained on such captions (Sec. 3: the Demonstrator is conditioned on c_D = (I, D)).
@@ -24,6 +24,7 @@ Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of
 """
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass, field
 
@@ -31,7 +32,7 @@ import numpy as np
 
 H = W = 16          # view size in pixels
 F = 6               # frames per video: frame 0 is the observation, 1..F-1 are generated
-MAX_SPEED = 2       # |vx|, |vy| <= MAX_SPEED pixels per frame
+MAX_SPEED = 1       # |vx|, |vy| <= MAX_SPEED pixels per frame
 CENTRE = (H - 1) / 2  # 7.5: the view centre, in pixel-centre coordinates
 
 COLOURS = {  # name -> RGB; pairwise distances > 150 so a judge can tell them apart by colour alone
@@ -287,30 +288,37 @@ ALL_MOTIONS = [(vx, vy, k) for vx in range(-MAX_SPEED, MAX_SPEED + 1) for vy in 
                for k in range(1, F) if (vx, vy) != (0, 0)]
 
 
-def task_margin(kind: str, target: str, agent_xy, target_xy) -> float:
+def task_margin(kind: str, target: str, agent_xy, target_xy):
     """How far inside (> 0) or outside (< 0) the end-state rule of a task the final centres are, in pixels.
       move_to    : Chebyshev distance between agent and target centres <= 4 (side by side, 0-1 px gap)
       level_with : |y_agent - y_target| <= 0.5 (same row)
       edge       : the agent's 3x3 box touches that edge (centre x <= 1, etc.)
       centre     : the target centre within 1 px of the view centre (7.5, 7.5) on both axes
-    The planner needs margin >= 0 on integer centres; the judges (reward.py) apply the same rule to centres read
-    from generated frames, with a small slack for sub-pixel blur."""
+    Centres are arrays (..., 2) = (x, y); the margin has shape (...). The planner needs margin >= 0 on integer
+    centres; the judges (reward.py) apply the same rule to centres read from generated frames, with a small slack
+    for sub-pixel blur."""
     if kind == "centre":
-        return 1.0 - float(np.abs(np.asarray(target_xy, float) - CENTRE).max())
+        return 1.0 - np.abs(np.asarray(target_xy, float) - CENTRE).max(-1)
     a = np.asarray(agent_xy, float)
     if kind == "move_to":
-        return 4.0 - float(np.abs(a - np.asarray(target_xy, float)).max())
+        return 4.0 - np.abs(a - np.asarray(target_xy, float)).max(-1)
     if kind == "level_with":
-        return 0.5 - abs(a[1] - float(target_xy[1]))
-    return {"left": 1.0 - a[0], "right": a[0] - (W - 2), "top": 1.0 - a[1], "bottom": a[1] - (H - 2)}[target]
+        return 0.5 - np.abs(a[..., 1] - np.asarray(target_xy, float)[..., 1])
+    return {"left": 1.0 - a[..., 0], "right": a[..., 0] - (W - 2), "top": 1.0 - a[..., 1],
+            "bottom": a[..., 1] - (H - 2)}[target]
+
+
+def _margins(scene: Scene, task: Task, pos: np.ndarray) -> np.ndarray:
+    """task_margin on sprite centres pos (..., n, 2) -> (...)."""
+    names = scene.names()
+    tgt = pos[..., names.index(task.target), :] if task.kind != "edge" else None
+    agent = pos[..., names.index(task.agent), :] if task.kind != "centre" else None
+    return task_margin(task.kind, task.target, agent, tgt)
 
 
 def task_solved_by(scene: Scene, task: Task, end: np.ndarray) -> bool:
     """The end-state rule on exact final sprite centres `end` (n, 2), as the planner sees them."""
-    names = scene.names()
-    tgt = end[names.index(task.target)] if task.kind != "edge" else None
-    agent = end[names.index(task.agent)] if task.kind != "centre" else None
-    return task_margin(task.kind, task.target, agent, tgt) >= 0
+    return bool(_margins(scene, task, end) >= 0)
 
 
 def candidate_tasks(scene: Scene) -> list[Task]:
@@ -325,24 +333,35 @@ def candidate_tasks(scene: Scene) -> list[Task]:
     return tasks
 
 
+_MOTIONS = np.array(ALL_MOTIONS)  # (M, 3): vx, vy, k
+
+
+def _all_positions(scene: Scene, mover: int) -> np.ndarray:
+    """simulate() for every motion in ALL_MOTIONS at once: (M, F, n, 2)."""
+    pos = np.array([[s.x, s.y] for s in scene.sprites])
+    steps = np.minimum(np.arange(F)[None], _MOTIONS[:, 2:3])[..., None] * _MOTIONS[:, None, :2]  # (M, F, 2)
+    out = np.broadcast_to(pos, (len(_MOTIONS), F, *pos.shape)).copy()
+    if mover == -1:
+        out -= steps[:, :, None]
+    else:
+        out[:, :, mover] += steps
+    return out
+
+
 def solutions(scene: Scene, task: Task) -> list[Plan]:
     """All constant-velocity plans that solve `task`, are valid, and stop exactly when they solve it (they are not
     solved one frame earlier). Empty if the task is already solved at frame 0."""
-    names = scene.names()
-    start = simulate(scene, Plan(None))[0]
-    if task_solved_by(scene, task, start):
+    mover = -1 if task.agent == FIRST_PERSON else scene.names().index(task.agent)
+    pos = _all_positions(scene, mover)                                   # (M, F, n, 2)
+    margins = _margins(scene, task, pos)                                 # (M, F)
+    if margins[0, 0] >= 0:
         return []
-    mover = -1 if task.agent == FIRST_PERSON else names.index(task.agent)
-    out = []
-    for vx, vy, k in ALL_MOTIONS:
-        if task.kind == "level_with" and vx != 0:
-            continue  # "stop level with": a vertical move, as a person would read it
-        plan = Plan(mover, vx, vy, k)
-        pos = simulate(scene, plan)
-        if (task_solved_by(scene, task, pos[k]) and not task_solved_by(scene, task, pos[k - 1])
-                and plan_is_valid(scene, plan)):
-            out.append(plan)
-    return out
+    k = _MOTIONS[:, 2]
+    ok = (margins[np.arange(len(k)), k] >= 0) & (margins[np.arange(len(k)), k - 1] < 0)
+    if task.kind == "level_with":
+        ok &= _MOTIONS[:, 0] == 0  # "stop level with": a vertical move, as a person would read it
+    plans = [Plan(mover, int(vx), int(vy), int(kk)) for vx, vy, kk in _MOTIONS[ok]]
+    return [p for p in plans if plan_is_valid(scene, p)]
 
 
 def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, str]:
@@ -363,10 +382,14 @@ def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, s
     return plan, ""
 
 
-def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0):
+def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0,
+                  err_rng: np.random.Generator | None = None):
     """The toy VLM g(I) of Alg. 1 line 4: read the first frame, propose up to `n` feasible tasks (one family drawn
     uniformly among those feasible here, then a task, then one of its solving plans), and for each return
-    (task, D, D_oracle, plan, plan_oracle, error). With probability `error_rate` D describes a corrupted plan."""
+    (scene, task, D, D_oracle, plan, plan_oracle, error). With probability `error_rate` D describes a corrupted
+    plan. Errors are drawn from `err_rng` (default: rng) so that the tasks do not depend on the error rate, and a
+    description wrong at one error rate stays wrong at every higher one."""
+    err_rng = err_rng or rng
     scene = Scene(read_sprites(frame0), background=int(np.median(frame0)))
     by_family: dict[str, list[tuple[Task, list[Plan]]]] = {}
     for task in candidate_tasks(scene):
@@ -380,7 +403,7 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
         fam = sorted(by_family)[rng.integers(len(by_family))]
         task, sols = by_family[fam][rng.integers(len(by_family[fam]))]
         plan = sols[rng.integers(len(sols))]
-        plan_vlm, err = corrupt(scene, plan, rng) if rng.random() < error_rate else (plan, "")
+        plan_vlm, err = corrupt(scene, plan, err_rng) if err_rng.random() < error_rate else (plan, "")
         out.append((scene, task, describe(scene, plan_vlm), describe(scene, plan), plan_vlm, plan, err))
     return out
 
@@ -418,7 +441,7 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
         if exclude and scene_key(scene) in exclude:
             continue
         frame0 = render(scene, simulate(scene, Plan(None)))[0]
-        proposals = propose_tasks(frame0, rng, 1, error_rate)
+        proposals = propose_tasks(frame0, rng, 1, error_rate, np.random.default_rng([seed, len(pairs)]))
         for sc, task, d, d_or, p, p_or, err in proposals:
             pairs.append(Pair(sc, task, d, d_or, p, p_or, err, frame0))
     return pairs
@@ -427,11 +450,17 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
 def bench_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     """The fixed WorldTasks-toy bench split (Sec. 4.1.2): 200 pairs on 200 scenes, from a fixed seed.
     The scenes and tasks do not depend on `error_rate`; only which descriptions are corrupted does."""
-    return make_pairs(n, BENCH_SEED, error_rate)
+    return list(_bench_pairs(float(error_rate), n))
 
 
-def bench_scene_keys() -> set:
-    return {scene_key(p.scene) for p in bench_pairs(0.0)}
+@functools.lru_cache(maxsize=8)
+def _bench_pairs(error_rate: float, n: int) -> tuple:
+    return tuple(make_pairs(n, BENCH_SEED, error_rate))
+
+
+@functools.lru_cache(maxsize=1)
+def bench_scene_keys() -> frozenset:
+    return frozenset(scene_key(p.scene) for p in bench_pairs(0.0))
 
 
 def train_pairs(n: int, seed: int, error_rate: float) -> list[Pair]:

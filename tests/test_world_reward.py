@@ -66,9 +66,9 @@ def test_judges_fail_a_still_video_on_task_and_agent_but_not_consistency(bench):
     assert not any(res["task"]) and not any(res["agent"]) and all(res["consistency"])
 
 
-SCENE = Scene([Sprite("red", "square", 2, 8), Sprite("blue", "circle", 12, 8), Sprite("green", "cross", 7, 2)])
+SCENE = Scene([Sprite("red", "square", 2, 8), Sprite("blue", "circle", 11, 8), Sprite("green", "cross", 7, 12)])
 TASK = "[red square]: move to the blue circle"
-GOOD = Plan(0, 2, 0, 3)  # red square from x=2 to x=8: 4 px left of the blue circle
+GOOD = Plan(0, 1, 0, 5)  # red square from x=2 to x=7: 4 px left of the blue circle
 
 
 def test_hand_made_scene_correct():
@@ -79,7 +79,7 @@ def test_hand_made_scene_correct():
 def test_teleport_is_caught():
     v = _video(SCENE, GOOD)
     teleport = _video(SCENE, Plan(None))
-    teleport[3:] = v[-1]  # the agent jumps 6 px between frames 2 and 3
+    teleport[3:] = v[-1]  # the agent jumps 5 px between frames 2 and 3
     teleport[1:3] = v[0]
     j = reward.judge_all(teleport, TASK)
     assert j["task"].yes and not j["consistency"].yes and "teleports red" in j["consistency"].why
@@ -96,7 +96,7 @@ def test_duplicate_at_goal_fools_the_task_judge_but_not_consistency():
 
 
 def test_wrong_agent_moving_is_caught():
-    wrong = _video(SCENE, Plan(2, 0, 2, 2))  # the green cross moves instead
+    wrong = _video(SCENE, Plan(2, -1, 0, 2))  # the green cross moves instead
     j = reward.judge_all(wrong, TASK)
     assert not j["agent"].yes and not j["task"].yes and j["consistency"].yes
     both = world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
@@ -119,7 +119,7 @@ def test_vanishing_smear_and_new_object_are_caught():
 
 def test_first_person_pan():
     task = "[first-person view]: centre the blue circle"
-    pan = _video(SCENE, Plan(-1, 2, 0, 2))  # blue circle from x=12 to x=8
+    pan = _video(SCENE, Plan(-1, 1, 0, 3))  # blue circle from x=11 to x=8
     j = reward.judge_all(pan, task)
     assert j["task"].yes and j["agent"].yes and j["consistency"].yes
     j = reward.judge_all(_video(SCENE, Plan(1, -2, 0, 2)), task)  # the circle walks to the centre by itself

@@ -1,0 +1,167 @@
+"""Self-distillation of the Demonstrator into the Executor (Sec. 3, Eqs. 3-6, 9, 11; App. A.2.1, A.3, A.10).
+
+The Executor is v_theta(x_t, t | c_E) with c_E = (first frame, short task T): the base model with LoRA on.
+The Demonstrator is v_theta'(x_t, t | c_D) with c_D = (first frame, description D): the same base with the
+adapters off (models.adapters_disabled) -- fixed, never trained (App. A.3: a moving Demonstrator was unstable).
+
+Every objective takes a `model` that is both (adapters on = Executor, off = Demonstrator), conditions c_E and c_D
+as returned by model.condition(...), and states on a trajectory (xs, ts) as returned by flow.sample_ode(...,
+return_trajectory=True) through `rollout`. The integral over t in Eqs. 5, 6, 9, 11 becomes a left Riemann sum on
+the sampler's grid, sum_k (t_{k+1} - t_k) f(x_{t_k}, t_k) -- the states the sampler actually visited -- or, for
+the losses, an unbiased one-point estimate at a random grid index per sample.
+
+Reduction: ||.||^2 in the paper is a sum over latent dimensions; here it is a *mean* over them (pixels, channels,
+frames), so losses and r_distill do not scale with video size. That is the sum divided by d, a constant factor
+absorbed by beta_d and lambda_distill.
+
+Simplifications: the DMD generator is the Executor's own Euler sampler with gradients through all its steps
+(cheap on the toy); its fake score is a LoRA copy of the base.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import torch
+
+import flow
+import models
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# rollouts and the per-state discrepancy
+# ----------------------------------------------------------------------------------------------------------------
+
+@torch.no_grad()
+def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = False):
+    """A trajectory of Eq. 2 from noise x_0 (B, ...): the Executor's (adapters on) or, with demonstrator=True, the
+    Demonstrator's (adapters off). Returns (xs (steps + 1, B, ...), ts (steps + 1,)); no gradient (Eq. 11's
+    sg(x_t): sampled states are data, not functions of theta)."""
+    with models.adapters_disabled(model) if demonstrator else contextlib.nullcontext():
+        return flow.sample_ode(lambda x, t: model(x, t, c), x_0, steps, return_trajectory=True)
+
+
+def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict) -> torch.Tensor:
+    """v_theta'(x_t, t | c_D): the Demonstrator's velocity, a fixed target (no gradient)."""
+    with torch.no_grad(), models.adapters_disabled(model):
+        return model(x_t, t, c_D)
+
+
+def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict) -> torch.Tensor:
+    """Eq. 4: l_theta(x_t, t; c_E, c_D) = || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
+    x_t (B, ...), t (B,) -> (B,), mean over latent dimensions (see the module docstring). Gradient flows into the
+    Executor's velocity only; the Demonstrator's is a target."""
+    return (model(x_t, t, c_E) - teacher_velocity(model, x_t, t, c_D)).pow(2).flatten(1).mean(1)
+
+
+def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None):
+    """One random grid state per sample: k ~ U{0 .. S-1} (the final state t = 1 is never an input of the sampler).
+    xs (S+1, B, ...) -> x (B, ...), t (B,)."""
+    S, B = xs.shape[0] - 1, xs.shape[1]
+    k = torch.randint(0, S, (B,), generator=generator)
+    return xs[k, torch.arange(B)].detach(), ts[k]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# off-policy (Eq. 3), on-policy (Eq. 5), anchor (Eq. 11)
+# ----------------------------------------------------------------------------------------------------------------
+
+def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+    """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
+    `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
+    not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
+    x_t, t = _pick_states(*teacher_traj, generator)
+    return discrepancy(model, x_t, t, c_E, c_D).mean()
+
+
+def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+    """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
+    x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
+    gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample). Scalar."""
+    x_t, t = _pick_states(*student_traj, generator)
+    return discrepancy(model, x_t, t, c_E, c_D).mean()
+
+
+def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+    """Eq. 5: L_on = E_{(x_t, t) ~ p_theta(. | c_E)} l_theta(x_t, t) = E_tau int_0^1 l_theta(x_t, t) dt, on the
+    Executor's own states. Its gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log
+    p_theta(tau)] that moves the state distribution, and a direct regression term E[grad C_theta(tau)]. Back-
+    propagating through the sampler is impractical, so on sampled states held fixed this returns the direct term
+    only -- which is exactly the anchor of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
+    return anchor_loss(model, student_traj, c_E, c_D, generator)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the distillation reward (Eq. 9, and the per-step form of App. A.3)
+# ----------------------------------------------------------------------------------------------------------------
+
+@torch.no_grad()
+def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False) -> torch.Tensor:
+    """Eq. 9: r_distill(tau) = - int_0^1 || sg[v_theta(x_t, t | c_E)] - v_theta'(x_t, t | c_D) ||^2 dt
+    on an Executor trajectory, as the left Riemann sum on the sampler's grid:
+
+        r_distill = - sum_{k=0}^{S-1} (t_{k+1} - t_k) l(x_{t_k}, t_k).
+
+    Returns (B,); with per_step=True the (B, S) terms -(t_{k+1} - t_k) l(x_{t_k}, t_k) of App. A.3 (their sum is the
+    trajectory reward). No gradient: it acts through trajectory likelihood in the RL loss, not by backprop."""
+    xs, ts = student_traj
+    S, B = xs.shape[0] - 1, xs.shape[1]
+    terms = torch.stack([-(ts[k + 1] - ts[k]) * discrepancy(model, xs[k], ts[k].expand(B), c_E, c_D)
+                         for k in range(S)], dim=1)  # (B, S)
+    return terms if per_step else terms.sum(1)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the DMD variant (App. A.2.1, Eqs. 13-22)
+# ----------------------------------------------------------------------------------------------------------------
+
+def make_fake_score(model, rank: int = 8, alpha: float = 16.0):
+    """The fake-score denoiser mu_fake^phi of Eq. 17: a copy of the base with its own fresh LoRA (B = 0, so it
+    starts equal to the Demonstrator's network), trained online on Executor samples by Eq. 18."""
+    fake = copy.deepcopy(model)
+    for m in fake.modules():  # fold any Executor adapters away: phi starts from the base weights
+        if isinstance(m, models.LoRALinear):
+            m.lora_B.data.zero_()
+    if not any(isinstance(m, models.LoRALinear) for m in fake.modules()):
+        models.add_lora(fake, rank, alpha)
+    for n, p in fake.named_parameters():
+        p.requires_grad_("lora_" in n)
+    return fake
+
+
+def _denoise(model, x_t, t, c):
+    """mu(x_t, t) = x_t + (1 - t) v(x_t, t): the clean-data estimate in our convention (t = 1 is data)."""
+    return x_t + (1 - t).reshape(-1, *([1] * (x_t.dim() - 1))) * model(x_t, t, c)
+
+
+def dmd_generator_loss(model, fake, x: torch.Tensor, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+    """Eqs. 19/21: the Executor's samples x = G_theta(z, c_E) (with gradient) are re-noised by Eq. 15,
+    q_t(x_t | x) = N(alpha_t x, sigma_t^2 I) with alpha_t = t, sigma_t = 1 - t in our convention, and pushed along
+
+        grad_theta D_KL ~ E[ w_t alpha_t (s_fake(x_t, t | c_E) - s_real(x_t, t | c_D)) dG/dtheta ],
+        s(x_t) = -(x_t - alpha_t mu(x_t, t)) / sigma_t^2                                     (Eqs. 16, 17)
+
+    so s_fake - s_real = alpha_t (mu_fake - mu_real) / sigma_t^2. The real score is the Demonstrator under c_D
+    (adapters off), the fake one `fake` under c_E. w_t = sigma_t^2 / (alpha_t^2 mean|x - mu_real|), DMD's
+    normalisation (Yin et al. 2024), makes the step (mu_fake - mu_real) / mean|x - mu_real|. Returned as the
+    surrogate 0.5 ||x - sg(x - g)||^2 (mean over elements), whose gradient w.r.t. x is g."""
+    B = x.shape[0]
+    t = torch.rand(B, generator=generator).clamp(0.02, 0.98)
+    eps = torch.randn(x.shape, generator=generator)
+    with torch.no_grad():
+        x_t = flow.interpolate(eps, x.detach(), t)                # alpha_t x + sigma_t eps
+        with models.adapters_disabled(model):
+            mu_real = _denoise(model, x_t, t, c_D)
+        mu_fake = _denoise(fake, x_t, t, c_E)
+        norm = (x.detach() - mu_real).abs().flatten(1).mean(1).clamp(min=1e-3).reshape(-1, *([1] * (x.dim() - 1)))
+        g = (mu_fake - mu_real) / norm
+    return 0.5 * (x - (x - g).detach()).pow(2).mean()
+
+
+def dmd_fake_score_loss(fake, x: torch.Tensor, c_E: dict, generator=None) -> torch.Tensor:
+    """Eq. 18: L_denoise^phi = || mu_fake^phi(x_t, t) - x ||^2 on detached Executor samples x, x_t ~ q_t(. | x).
+    Mean over elements and batch."""
+    B = x.shape[0]
+    t = torch.rand(B, generator=generator).clamp(0.02, 0.98)
+    x_t = flow.interpolate(torch.randn(x.shape, generator=generator), x.detach(), t)
+    return (_denoise(fake, x_t, t, c_E) - x.detach()).pow(2).mean()

@@ -1,0 +1,126 @@
+"""distill.py: losses vanish exactly when Executor and Demonstrator agree, Eq. 9 against a hand computation,
+detached states, DMD's gradient, and a numerical check of Proposition 1."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+
+import distill
+import flow
+import models
+import world
+
+
+class Linear(nn.Module):
+    """v(x, t | c) = a_c x, with a_c a number carried in the condition: the Demonstrator and Executor are the same
+    module (no adapters), differing only in their condition, so every quantity has a closed form."""
+
+    def forward(self, x, t, c):
+        return c["a"] * x
+
+
+def test_eq9_matches_a_hand_computed_integral():
+    a_E, a_D, S = 0.5, -0.25, 4
+    x0 = torch.tensor([[1.0, 2.0], [-1.0, 0.5]])
+    m = Linear()
+    traj = distill.rollout(m, x0, {"a": a_E}, S)
+    r = distill.distill_reward(m, traj, {"a": a_E}, {"a": a_D})
+    # Euler on dx/dt = a_E x: x_k = (1 + a_E / S)^k x0; l_k = mean((a_E - a_D)^2 x_k^2); r = -sum_k (1/S) l_k
+    want = -sum((1 / S) * ((a_E - a_D) ** 2) * ((1 + a_E / S) ** k * x0).pow(2).mean(1) for k in range(S))
+    assert torch.allclose(r, want, atol=1e-6)
+    per_step = distill.distill_reward(m, traj, {"a": a_E}, {"a": a_D}, per_step=True)
+    assert per_step.shape == (2, S) and torch.allclose(per_step.sum(1), r)
+    assert torch.all(distill.distill_reward(m, traj, {"a": a_E}, {"a": a_E}) == 0)
+
+
+@pytest.fixture(scope="module")
+def lora_model():
+    torch.manual_seed(0)
+    m = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
+    nn.init.normal_(m.out.weight, std=0.05)  # a fresh model ignores its input; fake a trained one
+    models.add_lora(m, rank=4, alpha=8)
+    rng = np.random.default_rng(0)
+    pairs = world.make_pairs(4, seed=3, error_rate=0.0)
+    frame0 = np.stack([p.frame0 for p in pairs])
+    c_E = m.condition(frame0, [p.task.text for p in pairs])
+    c_D = m.condition(frame0, [p.d_oracle for p in pairs])
+    x0 = torch.randn(4, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    return m, c_E, c_D, x0
+
+
+def _lora_B(m):
+    return [p for n, p in m.named_parameters() if n.endswith("lora_B")]
+
+
+def _perturb(m, scale):
+    for p in _lora_B(m):
+        p.data.normal_(0, scale) if scale else p.data.zero_()
+
+
+@pytest.mark.parametrize("which", ["off", "on", "anchor"])
+def test_losses_are_zero_iff_executor_equals_demonstrator(lora_model, which):
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0)
+    fn = {"off": distill.off_policy_loss, "on": distill.on_policy_loss, "anchor": distill.anchor_loss}[which]
+    traj = lambda c_cond, demo: distill.rollout(m, x0, c_cond, 3, demonstrator=demo)
+    # same condition on both sides and B = 0: the Executor *is* the Demonstrator
+    assert fn(m, traj(c_D, which == "off"), c_D, c_D).item() == 0.0
+    # different conditions (T vs D): positive
+    assert fn(m, traj(c_D if which == "off" else c_E, which == "off"), c_E, c_D).item() > 0
+    # same condition but trained adapters: positive
+    _perturb(m, 0.05)
+    assert fn(m, traj(c_D, which == "off"), c_D, c_D).item() > 0
+    _perturb(m, 0)
+
+
+def test_on_policy_states_are_detached(lora_model):
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0.05)
+    x0 = x0.clone().requires_grad_(True)
+    xs, ts = flow.sample_ode(lambda x, t: m(x, t, c_E), x0, 3, return_trajectory=True)  # with grad, on purpose
+    loss = distill.anchor_loss(m, (xs, ts), c_E, c_D)
+    loss.backward()
+    assert x0.grad is None  # nothing flows back into the sampler (Eq. 11's sg)
+    assert all(p.grad is not None for p in _lora_B(m))
+    assert not distill.rollout(m, x0.detach(), c_E, 3)[0].requires_grad
+    m.zero_grad(set_to_none=True)
+    _perturb(m, 0)
+
+
+def test_dmd_gradient_is_zero_when_fake_equals_real_and_points_from_fake_to_real(lora_model):
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0)
+    fake = distill.make_fake_score(m)
+    x = x0.clone().requires_grad_(True)
+    distill.dmd_generator_loss(m, fake, x, c_D, c_D, torch.Generator().manual_seed(1)).backward()
+    assert torch.all(x.grad == 0)  # fake score == real score: nothing to match
+    x.grad = None
+    distill.dmd_generator_loss(m, fake, x, c_E, c_D, torch.Generator().manual_seed(1)).backward()
+    assert x.grad.abs().sum() > 0
+    loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E)
+    loss.backward()
+    assert loss.item() > 0 and all(p.grad is not None for p in models.lora_parameters(fake))
+
+
+def test_proposition_1_bound_on_linear_fields():
+    """Teacher v'(x) = A x (L = ||A||_2), student v(x) = A x + delta. With shared x_0 both terminal laws are
+    Gaussians with equal covariance, so W2 = ||Delta_1|| exactly; the bound says W2 <= e^L eps, with
+    eps^2 = E int ||v - v'||^2 dt on the student's own trajectory = ||delta||^2 (squared norm = sum, as in Eq. 8)."""
+    torch.manual_seed(0)
+    d, n, S = 3, 256, 2000
+    for trial in range(5):
+        A = torch.randn(d, d) * 0.7
+        delta = torch.randn(d) * 0.3
+        L = torch.linalg.matrix_norm(A, ord=2).item()
+        x0 = torch.randn(n, d)
+        student = flow.sample_ode(lambda x, t: x @ A.T + delta, x0, S)
+        teacher = flow.sample_ode(lambda x, t: x @ A.T, x0, S)
+        gap = (student - teacher).norm(dim=1)  # the same for every sample: Delta_1 = int e^{A(1-s)} delta ds
+        w2 = gap.pow(2).mean().sqrt().item()
+        eps = delta.norm().item()
+        assert gap.std() < 1e-3
+        assert w2 <= math.exp(L) * eps + 1e-4, (w2, math.exp(L) * eps)
+        exact = (torch.linalg.matrix_exp(A) - torch.eye(d)) @ torch.linalg.solve(A, delta)  # int_0^1 e^{As} ds delta
+        assert abs(w2 - exact.norm().item()) < 5e-3 * (1 + exact.norm().item())

@@ -1,0 +1,80 @@
+"""Smoke runs of the entry scripts with tiny budgets, and their handling of bad input."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(*args):
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pretrain")
+    ckpt = str(d / "tiny.pt")
+    r = run("train.py", "--stage", "pretrain", "--pretrain_steps", "3", "--pretrain_batch", "4", "--width", "8",
+            "--log_every", "1", "--out", ckpt, "--run_dir", str(d))
+    assert r.returncode == 0, r.stderr
+    assert "step     3/3" in r.stdout and "ETA" in r.stdout
+    assert len(open(d / "pretrain.jsonl").read().splitlines()) == 3
+    return ckpt
+
+
+def test_distill_stage_smoke(tiny_ckpt, tmp_path):
+    r = run("train.py", "--stage", "distill", "--variant", "off,on,dmd", "--init", tiny_ckpt, "--steps", "2",
+            "--batch", "3", "--eval_every", "2", "--eval_n", "3", "--train_pairs", "6", "--sample_steps", "2",
+            "--log_every", "1", "--run_dir", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    summary = json.load(open(tmp_path / "distill_summary.json"))
+    assert set(summary["variants"]) == {"off", "on", "dmd"}
+    assert all([e["step"] for e in ev] == [0, 2] for ev in summary["variants"].values())
+    for f in ("fig4_left.png", "rollouts_on.gif", "executor_dmd.pt"):
+        assert (tmp_path / f).exists(), f
+    assert "[dmd] step    2/2" in r.stdout
+
+
+def test_bench_smoke_json(tiny_ckpt):
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--condition", "oracle", "--n", "4", "--steps", "2", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    for k in ("task", "agent", "consistency", "avg"):
+        assert 0.0 <= res[k] <= 1.0
+        assert k in res["valid"] and k in res["successes"]
+    assert res["n"] == 4 and res["seconds"] > 0
+    assert "| task" in r.stdout
+
+
+def test_bench_is_deterministic(tiny_ckpt):
+    a = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
+    b = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
+    strip = lambda r: {k: v for k, v in json.loads(r.stdout.splitlines()[-1]).items() if "seconds" not in k}
+    assert strip(a) == strip(b)
+
+
+@pytest.mark.skipif(not os.path.exists(os.path.join(ROOT, "checkpoints", "base.pt")), reason="no shipped base")
+def test_bench_on_the_shipped_base():
+    r = run("bench.py", "--condition", "task", "--n", "2", "--steps", "2", "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.splitlines()[-1])["checkpoint"] == "shipped base"
+
+
+def test_bad_input_gives_one_clear_error(tmp_path):
+    r = run("bench.py", "--condition", "bogus")
+    assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
+    r = run("train.py", "--stage", "bogus")
+    assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
+    r = run("train.py", "--steps", "0")
+    assert r.returncode == 2 and "--steps must be >= 1" in r.stderr
+    r = run("train.py", "--variant", "on,bogus")
+    assert r.returncode == 2 and "unknown 'bogus'" in r.stderr
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"garbage")
+    r = run("bench.py", "--checkpoint", str(bad), "--n", "2")
+    assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
+    r = run("bench.py", "--checkpoint", str(tmp_path / "missing.pt"), "--n", "2")
+    assert r.returncode == 2 and "does not exist" in r.stderr
