@@ -385,7 +385,9 @@ def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, s
 def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0,
                   err_rng: np.random.Generator | None = None):
     """The toy VLM g(I) of Alg. 1 line 4: read the first frame, propose up to `n` feasible tasks (one family drawn
-    uniformly among those feasible here, then a task, then one of its solving plans), and for each return
+    uniformly among those feasible here, then a task), describe its canonical solution -- the plan that arrives
+    soonest, then the one moving along fewer axes, then a fixed order -- so that, as for each (I, T) in the paper's
+    pre-generated dataset, one description goes with a task, and it is a function of (I, T). For each, return
     (scene, task, D, D_oracle, plan, plan_oracle, error). With probability `error_rate` D describes a corrupted
     plan. Errors are drawn from `err_rng` (default: rng) so that the tasks do not depend on the error rate, and a
     description wrong at one error rate stays wrong at every higher one."""
@@ -402,7 +404,7 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
             break
         fam = sorted(by_family)[rng.integers(len(by_family))]
         task, sols = by_family[fam][rng.integers(len(by_family[fam]))]
-        plan = sols[rng.integers(len(sols))]
+        plan = min(sols, key=lambda p: (p.k, abs(p.vx) + abs(p.vy), p.vx, p.vy))  # the canonical solution
         plan_vlm, err = corrupt(scene, plan, err_rng) if err_rng.random() < error_rate else (plan, "")
         out.append((scene, task, describe(scene, plan_vlm), describe(scene, plan), plan_vlm, plan, err))
     return out
@@ -480,21 +482,43 @@ def random_plan(scene: Scene, rng: np.random.Generator) -> Plan:
             return plan
 
 
+def goal_caption(task: Task) -> str:
+    """What a captioner writes about a goal-directed clip: "red square moves to the blue circle", "camera pans to
+    the blue circle". A description of the video, not an instruction (no "[agent]:" format, no imperative)."""
+    if task.kind == "centre":
+        return f"camera pans to the {task.target}"
+    return f"{task.agent} moves " + {"move_to": "to the {}", "level_with": "level with the {}",
+                                     "edge": "to the {} edge"}[task.kind].format(task.target)
+
+
+def goal_clip(scene: Scene, rng: np.random.Generator):
+    """A random feasible task of `scene` and its canonical solution, or None if the scene has none."""
+    tasks = candidate_tasks(scene)
+    for i in rng.permutation(len(tasks)):
+        sols = solutions(scene, tasks[i])
+        if sols:
+            return tasks[i], min(sols, key=lambda p: (p.k, abs(p.vx) + abs(p.vy), p.vx, p.vy))
+    return None
+
+
 def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.15, p_empty: float = 0.10,
-                      exclude: set | None = None):
-    """World videos for pretraining the base model, captioned like D (Sec. 3): with probability p_vague a caption
-    that names the mover but not the motion, with p_empty an empty caption (as video models are trained for
-    classifier-free guidance). Returns (videos uint8 (B, F, H, W, 3), captions list[str])."""
+                      p_goal: float = 0.0, exclude: set | None = None):
+    """World videos for pretraining the base model (Sec. 3): most captioned like D (how things move); with
+    probability p_goal a goal-directed clip with a goal caption ("red square moves to the blue circle" -- real
+    video captions say such things, and they are why a real base half-understands a short task); with p_vague a
+    caption that names the mover but not the motion; with p_empty an empty caption (as video models are trained
+    for classifier-free guidance). Returns (videos uint8 (B, F, H, W, 3), captions list[str])."""
     videos, captions = [], []
     while len(videos) < batch:
         scene = random_scene(rng)
         if exclude and scene_key(scene) in exclude:
             continue
-        plan = random_plan(scene, rng)
+        goal = goal_clip(scene, rng) if p_goal > 0 and rng.random() < p_goal else None  # no draw when p_goal = 0
+        plan = goal[1] if goal else random_plan(scene, rng)
         videos.append(render(scene, simulate(scene, plan)))
         u = rng.random()
-        captions.append("" if u < p_empty else vague_caption(scene, plan) if u < p_empty + p_vague
-                        else describe(scene, plan))
+        captions.append(goal_caption(goal[0]) if goal else "" if u < p_empty else
+                        vague_caption(scene, plan) if u < p_empty + p_vague else describe(scene, plan))
     return np.stack(videos), captions
 
 
