@@ -42,7 +42,8 @@ def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = 
 
 
 def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict) -> torch.Tensor:
-    """v_theta'(x_t, t | c_D): the Demonstrator's velocity, a fixed target (no gradient)."""
+    """v_theta'(x_t, t | c_D) of Eqs. 3, 4, 9, 11: the Demonstrator's velocity (adapters off), a fixed target
+    (no gradient)."""
     with torch.no_grad(), models.adapters_disabled(model):
         return model(x_t, t, c_D)
 

@@ -44,7 +44,7 @@ def flow_matching_loss(v_theta: VelocityField, x_0: torch.Tensor, x_1: torch.Ten
 
 
 def time_grid(steps: int, device=None) -> torch.Tensor:
-    """Uniform grid 0 = t_0 < t_1 < ... < t_steps = 1, shape (steps + 1,)."""
+    """The sampler's grid for Eq. 2 (App. A.9): uniform 0 = t_0 < t_1 < ... < t_steps = 1, shape (steps + 1,)."""
     return torch.linspace(0.0, 1.0, steps + 1, device=device)
 
 

@@ -9,7 +9,7 @@ transformer block (self-attention over space-time tokens, cross-attention to the
 is predicted by *dynamic neighbourhood advection* (DNA, Finn et al. 2016): each frame is the previous one with
 every pixel a softmax-weighted mix of its 3x3 neighbours, plus a residual -- so a moved sprite keeps its exact
 pixels. Measured on the toy: with a plain residual on the first frame, moving sprites came out as coloured blobs
-(consistency 0.06 given the error-free D after the same 2000 steps); see README "How the base was built".
+(consistency 0.06 given the error-free D after the same 2000 steps); the README's Results section has the table.
 
 Latent space of the toy model: the generated frames 1..F-1 as a tensor (B, T=F-1, 3, H, W) in [-1, 1]; frame 0
 is the clean condition, not generated (as in image-to-video LTX-2, where first-frame tokens sit at t = 1 here).
