@@ -26,7 +26,7 @@ import os
 import random
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -49,7 +49,7 @@ class Args:
     threads: int = 2
     """torch CPU threads"""
     out: str = ""
-    """where the trained checkpoint goes (default: checkpoints/base.pt for pretrain, runs/<variant>.pt for distill)"""
+    """where the trained checkpoint goes (default: checkpoints/base.pt for pretrain, <run_dir>/executor_<variant>.pt for distill)"""
     run_dir: str = "runs"
     """metrics (JSON lines), plots and GIFs go here"""
     # ---- pretrain ----
