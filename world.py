@@ -316,11 +316,6 @@ def _margins(scene: Scene, task: Task, pos: np.ndarray) -> np.ndarray:
     return task_margin(task.kind, task.target, agent, tgt)
 
 
-def task_solved_by(scene: Scene, task: Task, end: np.ndarray) -> bool:
-    """The end-state rule on exact final sprite centres `end` (n, 2), as the planner sees them."""
-    return bool(_margins(scene, task, end) >= 0)
-
-
 def candidate_tasks(scene: Scene) -> list[Task]:
     names = scene.names()
     tasks = []
@@ -364,6 +359,12 @@ def solutions(scene: Scene, task: Task) -> list[Plan]:
     return [p for p in plans if plan_is_valid(scene, p)]
 
 
+def canonical_solution(sols: list[Plan]) -> Plan:
+    """The one plan the toy VLM describes for a task: the one arriving soonest, then the one moving along fewer
+    axes, then a fixed order -- a function of (I, T), as each (I, T) of the paper's dataset has one D."""
+    return min(sols, key=lambda p: (p.k, abs(p.vx) + abs(p.vy), p.vx, p.vy))
+
+
 def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, str]:
     """A plausible VLM mistake: wrong direction, wrong distance, or wrong agent; always a valid, different plan."""
     n = len(scene.sprites)
@@ -385,9 +386,7 @@ def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, s
 def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0,
                   err_rng: np.random.Generator | None = None):
     """The toy VLM g(I) of Alg. 1 line 4: read the first frame, propose up to `n` feasible tasks (one family drawn
-    uniformly among those feasible here, then a task), describe its canonical solution -- the plan that arrives
-    soonest, then the one moving along fewer axes, then a fixed order -- so that, as for each (I, T) in the paper's
-    pre-generated dataset, one description goes with a task, and it is a function of (I, T). For each, return
+    uniformly among those feasible here, then a task), describe its canonical_solution. For each, return
     (scene, task, D, D_oracle, plan, plan_oracle, error). With probability `error_rate` D describes a corrupted
     plan. Errors are drawn from `err_rng` (default: rng) so that the tasks do not depend on the error rate, and a
     description wrong at one error rate stays wrong at every higher one."""
@@ -404,7 +403,7 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
             break
         fam = sorted(by_family)[rng.integers(len(by_family))]
         task, sols = by_family[fam][rng.integers(len(by_family[fam]))]
-        plan = min(sols, key=lambda p: (p.k, abs(p.vx) + abs(p.vy), p.vx, p.vy))  # the canonical solution
+        plan = canonical_solution(sols)
         plan_vlm, err = corrupt(scene, plan, err_rng) if err_rng.random() < error_rate else (plan, "")
         out.append((scene, task, describe(scene, plan_vlm), describe(scene, plan), plan_vlm, plan, err))
     return out
@@ -497,7 +496,7 @@ def goal_clip(scene: Scene, rng: np.random.Generator):
     for i in rng.permutation(len(tasks)):
         sols = solutions(scene, tasks[i])
         if sols:
-            return tasks[i], min(sols, key=lambda p: (p.k, abs(p.vx) + abs(p.vy), p.vx, p.vy))
+            return tasks[i], canonical_solution(sols)
     return None
 
 
