@@ -97,18 +97,28 @@ def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) ->
 # ----------------------------------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False) -> torch.Tensor:
+def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False,
+                   student_v: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 9: r_distill(tau) = - int_0^1 || sg[v_theta(x_t, t | c_E)] - v_theta'(x_t, t | c_D) ||^2 dt
     on an Executor trajectory, as the left Riemann sum on the sampler's grid:
 
         r_distill = - sum_{k=0}^{S-1} (t_{k+1} - t_k) l(x_{t_k}, t_k).
 
     Returns (B,); with per_step=True the (B, S) terms -(t_{k+1} - t_k) l(x_{t_k}, t_k) of App. A.3 (their sum is the
-    trajectory reward). No gradient: it acts through trajectory likelihood in the RL loss, not by backprop."""
+    trajectory reward). No gradient: it acts through trajectory likelihood in the RL loss, not by backprop.
+    `student_v` (S, B, ...): the Executor's velocities v_theta(x_{t_k}, t_k | c_E) recorded while sampling, which
+    spares recomputing them (only the Demonstrator's are then evaluated)."""
     xs, ts = student_traj
     S, B = xs.shape[0] - 1, xs.shape[1]
-    terms = torch.stack([-(ts[k + 1] - ts[k]) * discrepancy(model, xs[k], ts[k].expand(B), c_E, c_D)
-                         for k in range(S)], dim=1)  # (B, S)
+    terms = []
+    for k in range(S):
+        t = ts[k].expand(B)
+        if student_v is None:
+            l_k = discrepancy(model, xs[k], t, c_E, c_D)
+        else:
+            l_k = (student_v[k] - teacher_velocity(model, xs[k], t, c_D)).pow(2).flatten(1).mean(1)
+        terms.append(-(ts[k + 1] - ts[k]) * l_k)
+    terms = torch.stack(terms, dim=1)  # (B, S)
     return terms if per_step else terms.sum(1)
 
 

@@ -10,6 +10,7 @@ the conversion happens in models.py at that boundary only.
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -64,3 +65,65 @@ def sample_ode(v_theta: VelocityField, x_0: torch.Tensor, steps: int, return_tra
         if return_trajectory:
             xs.append(x)
     return (torch.stack(xs), ts) if return_trajectory else x
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the SDE sampler for exploration (App. A.9, Flow-GRPO), with per-step Gaussian log-probabilities
+# ----------------------------------------------------------------------------------------------------------------
+
+def sde_sigma(t: torch.Tensor, noise_level: float, t_min: float) -> torch.Tensor:
+    """Flow-GRPO's diffusion coefficient in our convention: sigma_t = a sqrt((1 - t) / t), a = noise_level.
+    (Flow-GRPO writes sqrt(s / (1 - s)) with s = 1 - t its noise level.) It diverges at t = 0, where the state is
+    pure noise, so t is clamped to t_min >= the sampler's first step (Flow-GRPO likewise uses its second sigma)."""
+    t = t.clamp(min=t_min)
+    return noise_level * ((1 - t) / t).sqrt()
+
+
+def sde_step(v: torch.Tensor, x: torch.Tensor, t: torch.Tensor, dt: float, noise_level: float, t_min: float,
+             x_next: torch.Tensor | None = None, generator: torch.Generator | None = None):
+    """One Euler-Maruyama step of the SDE with Eq. 2's marginals (App. A.9, Flow-GRPO):
+
+        dx = [v_t(x) + (sigma_t^2 / 2) grad log p_t(x)] dt + sigma_t dw,
+        grad log p_t(x) = -(x - t v_t(x)) / (1 - t)          (the noise estimate x_0_hat = x - t v over its scale),
+
+    so the transition is Gaussian, x_next ~ N(mu, s^2 I) with
+
+        mu = x + dt [v - sigma_t^2 (x - t v) / (2 (1 - t))],      s = sigma_t sqrt(dt).
+
+    (With time running 0 -> 1 the score term enters with a plus sign; the Fokker-Planck terms of the score drift
+    and of the noise cancel, so every sigma_t gives the ODE's marginals.) v: v_theta(x, t), (B, ...); t: (B,).
+    If x_next is None it is drawn; otherwise its log-probability is evaluated (recomputing log-probs of recorded
+    transitions under new parameters). Returns (x_next, log_prob (B,), mu, s (B,)).
+
+    Reduction: log_prob is the Gaussian log-density *averaged* over latent dimensions, as Flow-GRPO does. The sum
+    over d dimensions would make log-ratios d times larger -- per-step ratios of exp(+-1000) on a video -- so the
+    clip range would have to shrink with the video size; the mean keeps ratios near 1 and one clip range (and KL
+    weight) across sizes. The average is the sum / d, a fixed temperature; its gradient has the same direction."""
+    sig = sde_sigma(t, noise_level, t_min)
+    tb, sb = _bcast(t, x), _bcast(sig, x)
+    mu = x + dt * (v - sb.pow(2) * (x - tb * v) / (2 * (1 - tb)))
+    s = sig * dt ** 0.5                                                      # (B,)
+    if x_next is None:
+        x_next = mu + _bcast(s, x) * torch.randn(x.shape, generator=generator, device=x.device)
+    z2 = ((x_next.detach() - mu) / _bcast(s, x)).pow(2)
+    log_prob = (-0.5 * z2 - _bcast(s.log(), x) - 0.5 * math.log(2 * math.pi)).flatten(1).mean(1)
+    return x_next, log_prob, mu, s
+
+
+def sample_sde(v_theta: VelocityField, x_0: torch.Tensor, steps: int, noise_level: float = 0.7,
+               generator: torch.Generator | None = None):
+    """Roll out the SDE of sde_step on the uniform grid from t = 0 to t = 1. Returns (xs (steps + 1, B, ...),
+    ts (steps + 1,), log_probs (B, steps)): every state and the log-probability of every transition
+    x_{t_k} -> x_{t_{k+1}} under the policy that drew it (Flow-GRPO's old log-probs). noise_level = 0 would be the
+    ODE, but the Gaussian has no density then; use sample_ode. Wrap in torch.no_grad() for rollouts."""
+    if noise_level <= 0:
+        raise ValueError("sample_sde needs noise_level > 0 (noise_level 0 is the ODE: use sample_ode)")
+    ts = time_grid(steps, x_0.device)
+    x, xs, lps = x_0, [x_0], []
+    for k in range(steps):
+        t = ts[k].expand(x.shape[0])
+        x, lp, _, _ = sde_step(v_theta(x, t), x, t, float(ts[k + 1] - ts[k]), noise_level, float(ts[1]),
+                               generator=generator)
+        xs.append(x)
+        lps.append(lp)
+    return torch.stack(xs), ts, torch.stack(lps, 1)

@@ -35,13 +35,15 @@ import bench
 import distill
 import flow
 import models
+import reward
+import rl
 import world
 
 
 @dataclass
 class Args:
-    stage: str = "distill"
-    """which stage to run: pretrain | distill"""
+    stage: str = "rl"
+    """which stage to run: pretrain | distill | rl (the whole method, Alg. 1)"""
     toy: bool = False
     """the laptop preset: the toy world and model on CPU (the values below are already the toy's)"""
     seed: int = 0
@@ -106,6 +108,45 @@ class Args:
     """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
     puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
     clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
+    # ---- rl (Alg. 1: the whole method) ----
+    trainer: str = "awm"
+    """policy-gradient objective L_RL (rl.py): awm (the paper's main setting) | flow-grpo | grpo | nft"""
+    group_size: int = 8
+    """G: rollouts per (image, task) whose rewards are compared (paper: 24)"""
+    tasks_per_step: int = 4
+    """distinct (image, T, D) per step; rollouts per step = tasks_per_step x group_size"""
+    sampler: str = "ode"
+    """rollout sampler for awm / nft: ode | sde (flow-grpo and grpo always use the SDE: they need its log-probs)"""
+    noise_level: float = 0.7
+    """a in the SDE's sigma_t = a sqrt((1 - t) / t) (Flow-GRPO's 0.7)"""
+    lambda_task: float = 1.0
+    """Eq. 10: weight of the task judge's graded score"""
+    lambda_distill: float = 1.0
+    """Eq. 10: weight of r_distill (Eq. 9); 0 = no distillation reward"""
+    lambda_cons: float = 1.0
+    """weight of the consistency judge's score (Sec. 4.1 "Rewards"); 0 = without it (paper Fig. 8)"""
+    beta_d: float = 1.0
+    """Eq. 12: weight of the Demonstrator anchor (Eq. 11); 0 = RL without the anchor"""
+    adv_agg: str = "gdpo"
+    """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
+    adv_clip: float = 5.0
+    """advantages are clipped to [-adv_clip, adv_clip]"""
+    inner_epochs: int = 1
+    """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
+    clip_range: float = 0.2
+    """PPO clip of the ratio (flow-grpo, awm); binds only when inner_epochs > 1"""
+    kl_beta: float = 0.0
+    """KL to the base under c_E (flow-grpo, awm); the anchor plays this part in WMSD"""
+    awm_timesteps: int = 2
+    """awm / nft: re-noising times per final sample"""
+    awm_weighting: str = "ghuber"
+    """awm time weighting: uniform | t | huber | ghuber (Tab. 3)"""
+    ghuber_power: float = 0.5
+    """power of the generalised Huber weighting"""
+    awm_ratio: str = "exp_first"
+    """awm ratio: exp_first (Tab. 3) | sum_first"""
+    nft_beta: float = 1.0
+    """DiffusionNFT's implicit-policy step"""
 
 
 def parse_args(argv=None) -> Args:
@@ -121,12 +162,27 @@ def parse_args(argv=None) -> Args:
                            choices=list(STAGES) if f.name == "stage" else None)
     args = Args(**vars(p.parse_args(argv)))
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
-                 "sample_steps", "train_pairs", "eval_every", "eval_n"):
+                 "sample_steps", "train_pairs", "eval_every", "eval_n", "tasks_per_step", "inner_epochs",
+                 "awm_timesteps"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
     if bad:
         p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
+    if args.group_size < 2:
+        p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
+    for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
+                          ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
+                          ("awm_ratio", ("exp_first", "sum_first"))):
+        if getattr(args, name) not in allowed:
+            p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
+    for name in ("beta_d", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip", "clip_range"):
+        if getattr(args, name) < 0:
+            p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
+    if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:
+        p.error("at least one of --lambda_task, --lambda_distill, --lambda_cons must be > 0")
+    if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):
+        p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:
         p.error("--error_rate must lie in [0, 1]")
     if args.eval_n > 200:
@@ -360,7 +416,164 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
 
 
-STAGES = {"pretrain": pretrain, "distill": distill_stage}
+# ================================================================================================================
+# stage: the whole method -- RL from the judges with the distillation reward and the anchor (Alg. 1, rl.py)
+# ================================================================================================================
+
+TRAINERS = tuple(rl.OBJECTIVES)
+
+
+def rl_config(args: Args) -> rl.RLConfig:
+    return rl.RLConfig(clip_range=args.clip_range, kl_beta=args.kl_beta, timesteps=args.awm_timesteps,
+                       weighting=args.awm_weighting, ghuber_power=args.ghuber_power, ratio=args.awm_ratio,
+                       nft_beta=args.nft_beta)
+
+
+def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
+    """Alg. 1 line 6: the judges' graded scores of each rollout as rewards, NaN where no judgment is possible
+    (skipped by rl.advantages, counted in the log). Returns {"task": (N,), "consistency": (N,), "solved": (N,)}."""
+    out = {"task": [], "consistency": [], "solved": []}
+    for v, t in zip(videos, tasks):
+        r = reward.read_video(v)
+        jt, jc = reward.judge_task(r, t) if r else reward.INVALID, reward.judge_consistency(r) if r else reward.INVALID
+        out["task"].append(np.nan if jt.score is None else jt.score)
+        out["consistency"].append(np.nan if jc.score is None else jc.score)
+        out["solved"].append(np.nan if jt.yes is None else float(jt.yes and bool(jc.yes)))
+    return {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
+
+
+def rl_step(model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen) -> dict:
+    """One iteration of Alg. 1 on tasks_per_step (image, T, D), each repeated group_size times."""
+    G = args.group_size
+    frame0, tasks, descs = np.repeat(frame0, G, axis=0), [t for t in tasks for _ in range(G)], \
+        [d for d in descs for _ in range(G)]
+    groups = torch.arange(len(tasks)) // G
+    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
+    x_0 = torch.randn(len(tasks), *model.latent_shape(), generator=gen)
+    t0 = time.time()
+    # line 5: rollouts tau ~ p_theta(. | I, T); the velocities along the way are kept for Eq. 9
+    vs = []
+
+    def v_E(x, t):
+        vs.append(model(x, t, c_E))
+        return vs[-1]
+
+    with torch.no_grad():
+        if args.trainer in rl.NEEDS_SDE or args.sampler == "sde":
+            xs, ts, log_probs = flow.sample_sde(v_E, x_0, args.sample_steps, args.noise_level, gen)
+        else:
+            (xs, ts), log_probs = flow.sample_ode(v_E, x_0, args.sample_steps, return_trajectory=True), None
+    ro = rl.Rollouts(xs, ts, c_E, log_probs, args.noise_level)
+    videos = model.decode(xs[-1], frame0)
+    t1 = time.time()
+    # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward
+    rewards = judge_rollouts(videos, tasks)
+    rewards["distill"] = (distill.distill_reward(model, (xs, ts), c_E, c_D, student_v=torch.stack(vs))
+                          if args.lambda_distill > 0 else torch.zeros(len(tasks)))
+    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
+    A = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
+    t2 = time.time()
+    # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
+    for _ in range(args.inner_epochs):
+        l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
+        l_anchor = distill.anchor_loss(model, (xs, ts), c_E, c_D, gen) if args.beta_d > 0 else None
+        loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss {loss.item()} (L_RL {l_rl.item()})")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
+        opt.step()
+    nan = lambda x: float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")  # noqa: E731
+    return {"loss": loss.item(), "l_rl": l_rl.item(), "l_anchor": None if l_anchor is None else l_anchor.item(),
+            "grad_norm": float(gnorm), "r_task": nan(rewards["task"]), "r_cons": nan(rewards["consistency"]),
+            "r_distill": float(rewards["distill"].mean()), "solved": nan(rewards["solved"]),
+            "invalid": int((~torch.isfinite(rewards["task"])).sum()), "adv_abs": float(A.abs().mean()),
+            "sample_s": t1 - t0, "reward_s": t2 - t1, "update_s": time.time() - t2, **info}
+
+
+def rl_stage(args: Args) -> dict:
+    """Alg. 1 from the shipped base: every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
+    (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
+    L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; ends with the bench table (Base given T,
+    Demonstrator given the toy VLM's D, Executor given T), a curve, a GIF and the LoRA checkpoint."""
+    rng = seed_everything(args.seed, args.threads)
+    gen = torch.Generator().manual_seed(args.seed)
+    os.makedirs(args.run_dir, exist_ok=True)
+    start = time.time()
+    pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+    model, _ = models.load_checkpoint(args.init or None)
+    base_T = evaluate_executor(model, args)                       # no adapters yet: the base given T
+    demo = evaluate_executor(model, args, demonstrator=True)
+    models.add_lora(model, args.lora_rank, args.lora_alpha)
+    params = models.lora_parameters(model)
+    opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
+    cfg = rl_config(args)
+    keys = ("task", "agent", "consistency", "avg")
+    print(f"{len(pairs)} training pairs; base given T: task {base_T['task']:.3f} consistency "
+          f"{base_T['consistency']:.3f}; Demonstrator (toy VLM's D): task {demo['task']:.3f} consistency "
+          f"{demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
+    evals = [{"step": 0, **{k: base_T[k] for k in keys}}]
+    logf = open(os.path.join(args.run_dir, "rl.jsonl"), "w")
+    logf.write(json.dumps({"eval": True, **evals[0]}) + "\n")
+    loop_start = time.time()
+    for step in range(1, args.steps + 1):
+        t0 = time.time()
+        frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.tasks_per_step, replace=False))
+        rec = {"step": step, **rl_step(model, opt, params, args, cfg, frame0, tasks, descs, gen),
+               "step_seconds": time.time() - t0}
+        logf.write(json.dumps(rec) + "\n")
+        logf.flush()
+        print(f"step {step:4d}/{args.steps} | r_task {rec['r_task']:+.2f} solved {rec['solved']:.2f} "
+              f"r_cons {rec['r_cons']:+.2f} r_distill {rec['r_distill']:.4f} | loss {rec['loss']:+.4f} "
+              f"grad {rec['grad_norm']:.2f} | {rec['step_seconds']:.1f} s | {_eta(loop_start, step, args.steps)}",
+              flush=True)
+        if step % args.eval_every == 0 or step == args.steps:
+            res = evaluate_executor(model, args)
+            evals.append({"step": step, **{k: res[k] for k in keys}})
+            logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
+            print(f"  eval step {step}: task {res['task']:.3f} agent {res['agent']:.3f} consistency "
+                  f"{res['consistency']:.3f} avg {res['avg']:.3f}", flush=True)
+    logf.close()
+    out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
+    models.save_checkpoint(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+    final = evaluate_executor(model, args)
+    rows = {"Base (T)": base_T, "Base + VLM (Demonstrator, toy VLM's D)": demo, f"WMSD ({args.trainer}, T)": final}
+    table = ["| model | task | agent | consistency | avg | s/video |", "|---|---|---|---|---|---|"]
+    table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
+              f"{r['seconds_per_video']:.4f} |" for name, r in rows.items()]
+    summary = {"args": dataclasses.asdict(args), "evals": evals, "minutes": (time.time() - start) / 60,
+               "table": {n: {k: r[k] for k in (*keys, "seconds_per_video")} for n, r in rows.items()}}
+    with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args)
+    write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
+    print("\n".join(table))
+    print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, rl_curve.png, "
+          f"rollouts_rl.gif, rl_summary.json")
+    return summary
+
+
+def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    for ax, key in zip(axes, ("task", "consistency", "avg")):
+        ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
+        ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+        ax.set_xlabel("RL step")
+        ax.set_ylabel(f"bench {key} (Executor given T)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"WMSD on WorldTasks-toy: lambda_distill={args.lambda_distill}, beta_d={args.beta_d}, "
+                 f"lambda_cons={args.lambda_cons}, seed {args.seed}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+STAGES = {"pretrain": pretrain, "distill": distill_stage, "rl": rl_stage}
 
 
 def main(argv=None):

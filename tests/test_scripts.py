@@ -38,6 +38,22 @@ def test_distill_stage_smoke(tiny_ckpt, tmp_path):
     assert "[dmd] step    2/2" in r.stdout
 
 
+@pytest.mark.parametrize("trainer", ["awm", "flow-grpo"])
+def test_rl_stage_smoke(tiny_ckpt, tmp_path, trainer):
+    """Alg. 1 end to end with a tiny budget: the default stage (what `train.py --toy` runs)."""
+    r = run("train.py", "--toy", "--trainer", trainer, "--init", tiny_ckpt, "--steps", "2", "--group_size", "2",
+            "--tasks_per_step", "2", "--eval_every", "2", "--eval_n", "3", "--train_pairs", "4", "--sample_steps", "2",
+            "--inner_epochs", "2", "--run_dir", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert "step    2/2" in r.stdout and "ETA" in r.stdout and "| WMSD" in r.stdout
+    summary = json.load(open(tmp_path / "rl_summary.json"))
+    assert [e["step"] for e in summary["evals"]] == [0, 2]
+    for f in ("rl_curve.png", "rollouts_rl.gif", f"executor_{trainer}.pt", "rl.jsonl"):
+        assert (tmp_path / f).exists(), f
+    steps = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"eval"' not in line]
+    assert len(steps) == 2 and all(s["r_distill"] <= 0 for s in steps)
+
+
 def test_bench_smoke_json(tiny_ckpt):
     r = run("bench.py", "--checkpoint", tiny_ckpt, "--condition", "oracle", "--n", "4", "--steps", "2", "--json")
     assert r.returncode == 0, r.stderr
@@ -72,6 +88,12 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     assert r.returncode == 2 and "--steps must be >= 1" in r.stderr
     r = run("train.py", "--variant", "on,bogus")
     assert r.returncode == 2 and "unknown 'bogus'" in r.stderr
+    r = run("train.py", "--trainer", "ppo")
+    assert r.returncode == 2 and "--trainer: unknown 'ppo'" in r.stderr
+    r = run("train.py", "--group_size", "1")
+    assert r.returncode == 2 and "--group_size must be >= 2" in r.stderr
+    r = run("train.py", "--beta_d", "-0.1")
+    assert r.returncode == 2 and "--beta_d must be >= 0" in r.stderr
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
     r = run("bench.py", "--checkpoint", str(bad), "--n", "2")

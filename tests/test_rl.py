@@ -1,0 +1,227 @@
+"""rl.py and flow.py's SDE sampler: advantages, log-probs, ratios, clips, weightings, KL, and that each objective
+actually climbs a reward on a tiny problem."""
+import math
+
+import pytest
+import torch
+
+import flow
+import models
+import rl
+
+
+# ---- advantages and Eq. 10 ----------------------------------------------------------------------------------------
+
+def test_group_advantages_standardise_each_group_and_are_zero_for_ties():
+    r = torch.tensor([1.0, 2.0, 3.0, 5.0, 5.0, 5.0, 0.0, 10.0])
+    g = torch.tensor([0, 0, 0, 1, 1, 1, 2, 2])
+    A = rl.group_advantages(r, g)
+    for k in (0, 2):
+        a = A[g == k]
+        assert abs(a.mean().item()) < 1e-6 and abs(a.std(unbiased=False).item() - 1) < 1e-4
+    assert torch.equal(A[g == 1], torch.zeros(3))                      # all equal: zero, not NaN
+    assert torch.isfinite(A).all()
+
+
+def test_group_advantages_skip_invalid_rewards():
+    r = torch.tensor([1.0, float("nan"), 3.0])
+    A = rl.group_advantages(r, torch.zeros(3, dtype=torch.long))
+    assert A[1] == 0 and torch.allclose(A[[0, 2]], torch.tensor([-1.0, 1.0]), atol=1e-5)
+
+
+def test_reward_aggregation_on_a_hand_made_group():
+    # one group of 4: r_task decides in [-6, 6], r_distill is tiny
+    r_task = torch.tensor([6.0, -6.0, 6.0, -6.0])
+    r_distill = torch.tensor([-0.001, -0.001, -0.003, -0.003])
+    rewards, g = {"task": r_task, "distill": r_distill}, torch.zeros(4, dtype=torch.long)
+    w = {"task": 1.0, "distill": 1.0}
+    assert torch.allclose(rl.total_reward(rewards, w), r_task + r_distill)           # Eq. 10
+    A_sum = rl.advantages(rewards, w, g, "sum", clip=None)
+    # under plain sum the distillation reward barely moves the advantages ...
+    assert torch.allclose(A_sum, torch.tensor([1.0, -1.0, 1.0, -1.0]), atol=1e-3)
+    # ... under gdpo each reward counts in units of its own spread: the teacher-agreeing success ranks first
+    A_gdpo = rl.advantages(rewards, w, g, "gdpo", clip=None)
+    expect = torch.tensor([2.0, 0.0, 0.0, -2.0])                     # (+1+1), (-1+1), (+1-1), (-1-1)
+    expect = (expect - expect.mean()) / expect.std(unbiased=False)
+    assert torch.allclose(A_gdpo, expect, atol=2e-3)
+    assert A_gdpo.argmax() == 0 and A_gdpo.argmin() == 3
+    # clipping and a NaN reward
+    assert rl.advantages({"task": torch.tensor([0.0, 0.0, 0.0, 100.0])}, {"task": 1.0}, g, "sum", clip=1.0).max() == 1.0
+    A = rl.advantages({"task": torch.tensor([1.0, float("nan"), 0.0, 2.0])}, {"task": 1.0}, g, "gdpo")
+    assert A[1] == 0 and torch.isfinite(A).all()
+    with pytest.raises(ValueError):
+        rl.advantages(rewards, w, g, "mean")
+
+
+def test_final_loss_is_eq12():
+    assert rl.final_loss(torch.tensor(2.0), torch.tensor(3.0), 0.5).item() == 3.5
+    assert rl.final_loss(torch.tensor(2.0), None, 0.5).item() == 2.0
+
+
+# ---- the SDE sampler ------------------------------------------------------------------------------------------------
+
+def test_sde_step_log_prob_is_the_gaussian_density():
+    g = torch.Generator().manual_seed(0)
+    x, v = torch.randn(3, 4, 5, generator=g), torch.randn(3, 4, 5, generator=g)
+    t = torch.tensor([0.0, 0.3, 0.9])
+    x_next, lp, mu, s = flow.sde_step(v, x, t, 0.1, 0.7, t_min=0.1, generator=g)
+    direct = torch.distributions.Normal(mu, s.reshape(-1, 1, 1)).log_prob(x_next).flatten(1).mean(1)
+    assert torch.allclose(lp, direct, atol=1e-5)
+    # evaluating a given x_next gives the same number
+    _, lp2, _, _ = flow.sde_step(v, x, t, 0.1, 0.7, t_min=0.1, x_next=x_next)
+    assert torch.allclose(lp, lp2)
+
+
+def _gaussian_velocity(m: float, sd: float):
+    """Exact velocity of Eq. 2 for data N(m, sd^2) and noise N(0, 1): E[x_1 - x_0 | x_t]."""
+    def v(x, t):
+        t = t.reshape(-1, *([1] * (x.dim() - 1)))
+        var = (1 - t) ** 2 + t ** 2 * sd ** 2
+        d = x - t * m
+        return m + t * sd ** 2 / var * d - (1 - t) / var * d
+    return v
+
+
+def test_sde_sampler_keeps_the_ode_marginals():
+    v = _gaussian_velocity(2.0, 0.5)
+    x0 = torch.randn(20000, 1, generator=torch.Generator().manual_seed(1))
+    x_ode = flow.sample_ode(v, x0, 100)
+    xs, ts, lp = flow.sample_sde(v, x0, 100, noise_level=0.7, generator=torch.Generator().manual_seed(2))
+    x_sde = xs[-1]
+    for x in (x_ode, x_sde):
+        assert abs(x.mean().item() - 2.0) < 0.03 and abs(x.std().item() - 0.5) < 0.03
+    assert lp.shape == (20000, 100) and not torch.equal(x_ode, x_sde)
+    with pytest.raises(ValueError):
+        flow.sample_sde(v, x0, 10, noise_level=0.0)
+
+
+# ---- ratios, clip, weighting, KL --------------------------------------------------------------------------------------
+
+class Tiny(torch.nn.Module):
+    """v(x, t | c) = lin(x) + bias: enough to have parameters, adapters and a condition dict."""
+
+    def __init__(self, d: int = 6):
+        super().__init__()
+        self.lin = torch.nn.Linear(d, d)
+        self.bias = torch.nn.Linear(1, d, bias=False)
+
+    def forward(self, x, t, c):
+        return self.lin(x) * 0.1 + self.bias(c["one"]) + 0 * t[:, None]
+
+
+def _tiny_rollouts(model, n=8, steps=5, sde=True, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    c = {"one": torch.ones(n, 1)}
+    x0 = torch.randn(n, 6, generator=g)
+    with torch.no_grad():
+        if sde:
+            xs, ts, lp = flow.sample_sde(lambda x, t: model(x, t, c), x0, steps, 0.7, g)
+        else:
+            xs, ts = flow.sample_ode(lambda x, t: model(x, t, c), x0, steps, return_trajectory=True)
+            lp = None
+    return rl.Rollouts(xs, ts, c, lp, 0.7)
+
+
+def test_first_inner_step_ratio_is_one():
+    torch.manual_seed(0)
+    model = Tiny()
+    models.add_lora(model, 2, 4.0)
+    ro = _tiny_rollouts(model)
+    A = torch.randn(8)
+    cfg = rl.RLConfig()
+    lp = rl._step_log_probs(model, ro)
+    assert torch.allclose((lp - ro.log_probs).exp(), torch.ones_like(lp), atol=1e-6)
+    for name in ("flow-grpo", "awm"):
+        _, info = rl.OBJECTIVES[name](model, ro, A, cfg)
+        assert abs(info["ratio_mean"] - 1) < 1e-6
+
+
+def test_ppo_clip_as_stated():
+    ratio = torch.tensor([0.5, 1.0, 1.5, 0.5, 1.5])
+    A = torch.tensor([1.0, 1.0, 1.0, -1.0, -1.0])
+    loss = rl._ppo(ratio, A, 0.2)
+    # A > 0: the gain is capped at ratio 1.2, a drop below 0.8 is not; A < 0: the mirror image
+    assert torch.allclose(loss, torch.tensor([-0.5, -1.0, -1.2, 0.8, 1.5]))
+    # the gradient vanishes where the clip binds in the policy's favour
+    r = ratio.clone().requires_grad_(True)
+    rl._ppo(r, A, 0.2).sum().backward()
+    assert torch.allclose(r.grad, torch.tensor([-1.0, -1.0, 0.0, 0.0, 1.0]))
+
+
+def test_awm_weighting_on_hand_made_inputs():
+    err, t = torch.tensor([4.0, 4.0, 0.25]), torch.tensor([0.0, 0.5, 0.5])
+    assert torch.allclose(rl.awm_weight(err, t, "uniform"), err)
+    assert torch.allclose(rl.awm_weight(err, t, "t"), torch.tensor([4.0, 2.0, 0.125]))
+    assert torch.allclose(rl.awm_weight(err, t, "huber"), torch.tensor([2.0, 1.0, 0.25]), atol=1e-4)
+    assert torch.allclose(rl.awm_weight(err, t, "ghuber", 0.5), 2 * rl.awm_weight(err, t, "huber"), atol=1e-4)
+    assert torch.allclose(rl.awm_weight(err, t, "ghuber", 1.0), rl.awm_weight(err, t, "t"), atol=1e-5)
+    # the Huber forms grow slower than the error: 16x the error is 4x the weight
+    assert math.isclose(rl.awm_weight(torch.tensor([64.0]), torch.tensor([0.0]), "huber").item(), 8.0, rel_tol=1e-4)
+    with pytest.raises(ValueError):
+        rl.awm_weight(err, t, "cubic")
+
+
+def test_gaussian_kl_closed_form():
+    mu = torch.randn(4, 3)
+    s = torch.tensor([0.1, 0.2, 0.3, 0.4])
+    assert torch.equal(rl.gaussian_kl(mu, mu, s), torch.zeros(4))
+    mu2 = mu + 0.05
+    direct = torch.distributions.kl_divergence(torch.distributions.Normal(mu, s[:, None]),
+                                               torch.distributions.Normal(mu2, s[:, None])).mean(1)
+    assert torch.allclose(rl.gaussian_kl(mu, mu2, s), direct, atol=1e-6)
+
+
+def test_flow_grpo_kl_is_zero_with_adapters_at_init_and_grows_after():
+    torch.manual_seed(0)
+    model = Tiny()
+    models.add_lora(model, 2, 4.0)
+    ro = _tiny_rollouts(model)
+    cfg = rl.RLConfig(kl_beta=1.0)
+    _, info = rl.flow_grpo(model, ro, torch.zeros(8), cfg)
+    assert abs(info["kl"]) < 1e-10
+    with torch.no_grad():
+        for p in models.lora_parameters(model):
+            p.add_(0.3)
+    _, info = rl.flow_grpo(model, ro, torch.zeros(8), cfg)
+    assert info["kl"] > 1e-4
+
+
+def test_objectives_need_the_right_rollouts():
+    model = Tiny()
+    ro = _tiny_rollouts(model, sde=False)
+    for name in rl.NEEDS_SDE:
+        with pytest.raises(ValueError):
+            rl.OBJECTIVES[name](model, ro, torch.zeros(8), rl.RLConfig())
+
+
+@pytest.mark.parametrize("name", list(rl.OBJECTIVES))
+def test_each_objective_climbs_a_reward(name):
+    """Reward = mean of the final sample. A few updates of each objective, from groups of rollouts, must raise the
+    mean reward of fresh rollouts -- and a zero advantage must leave the LoRA untouched."""
+    torch.manual_seed(0)
+    model = Tiny()
+    models.add_lora(model, 2, 4.0)
+    params = models.lora_parameters(model)
+    opt = torch.optim.Adam(params, lr=0.05)
+    cfg = rl.RLConfig(timesteps=2)
+    sde = name in rl.NEEDS_SDE
+
+    def mean_reward(seed):
+        return _tiny_rollouts(model, 256, sde=sde, seed=seed).x1.mean().item()
+
+    before = mean_reward(100)
+    groups = torch.arange(4).repeat_interleave(8)
+    for step in range(15):
+        ro = _tiny_rollouts(model, 32, sde=sde, seed=step)
+        A = rl.advantages({"r": ro.x1.mean(1)}, {"r": 1.0}, groups)
+        loss, _ = rl.OBJECTIVES[name](model, ro, A, cfg, torch.Generator().manual_seed(step))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert mean_reward(100) > before + 0.3
+    # zero advantages: no gradient on the LoRA (the objective is a pure policy gradient)
+    ro = _tiny_rollouts(model, 32, sde=sde, seed=99)
+    loss, _ = rl.OBJECTIVES[name](model, ro, torch.zeros(32), cfg)
+    opt.zero_grad()
+    loss.backward()
+    assert all(p.grad is None or p.grad.abs().max() < 1e-7 for p in params)
