@@ -41,18 +41,19 @@ def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = 
         return flow.sample_ode(lambda x, t: model(x, t, c), x_0, steps, return_trajectory=True)
 
 
-def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict) -> torch.Tensor:
-    """v_theta'(x_t, t | c_D) of Eqs. 3, 4, 9, 11: the Demonstrator's velocity (adapters off), a fixed target
-    (no gradient)."""
-    with torch.no_grad(), models.adapters_disabled(model):
-        return model(x_t, t, c_D)
+def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict, teacher=None) -> torch.Tensor:
+    """v_theta'(x_t, t | c_D) of Eqs. 3, 4, 9, 11: the Demonstrator's velocity, a fixed target (no gradient).
+    The Demonstrator is `model` with adapters off -- or, in Alg. 2's alternating setting, a separately trained
+    network `teacher` (its own adapters on)."""
+    with torch.no_grad(), (models.adapters_disabled(model) if teacher is None else contextlib.nullcontext()):
+        return (model if teacher is None else teacher)(x_t, t, c_D)
 
 
-def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict) -> torch.Tensor:
+def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict, teacher=None) -> torch.Tensor:
     """Eq. 4: l_theta(x_t, t; c_E, c_D) = || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     x_t (B, ...), t (B,) -> (B,), mean over latent dimensions (see the module docstring). Gradient flows into the
     Executor's velocity only; the Demonstrator's is a target."""
-    return (model(x_t, t, c_E) - teacher_velocity(model, x_t, t, c_D)).pow(2).flatten(1).mean(1)
+    return (model(x_t, t, c_E) - teacher_velocity(model, x_t, t, c_D, teacher)).pow(2).flatten(1).mean(1)
 
 
 def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None):
@@ -67,20 +68,20 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
 # off-policy (Eq. 3), on-policy (Eq. 5), anchor (Eq. 11)
 # ----------------------------------------------------------------------------------------------------------------
 
-def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None) -> torch.Tensor:
     """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
     not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
     x_t, t = _pick_states(*teacher_traj, generator)
-    return discrepancy(model, x_t, t, c_E, c_D).mean()
+    return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 
-def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None) -> torch.Tensor:
     """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample). Scalar."""
     x_t, t = _pick_states(*student_traj, generator)
-    return discrepancy(model, x_t, t, c_E, c_D).mean()
+    return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
@@ -98,7 +99,7 @@ def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) ->
 
 @torch.no_grad()
 def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False,
-                   student_v: torch.Tensor | None = None) -> torch.Tensor:
+                   student_v: torch.Tensor | None = None, teacher=None) -> torch.Tensor:
     """Eq. 9: r_distill(tau) = - int_0^1 || sg[v_theta(x_t, t | c_E)] - v_theta'(x_t, t | c_D) ||^2 dt
     on an Executor trajectory, as the left Riemann sum on the sampler's grid:
 
@@ -114,9 +115,9 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
     for k in range(S):
         t = ts[k].expand(B)
         if student_v is None:
-            l_k = discrepancy(model, xs[k], t, c_E, c_D)
+            l_k = discrepancy(model, xs[k], t, c_E, c_D, teacher)
         else:
-            l_k = (student_v[k] - teacher_velocity(model, xs[k], t, c_D)).pow(2).flatten(1).mean(1)
+            l_k = (student_v[k] - teacher_velocity(model, xs[k], t, c_D, teacher)).pow(2).flatten(1).mean(1)
         terms.append(-(ts[k + 1] - ts[k]) * l_k)
     terms = torch.stack(terms, dim=1)  # (B, S)
     return terms if per_step else terms.sum(1)

@@ -20,6 +20,7 @@ the *same* weights with the adapters switched off (`adapters_disabled`) -- one c
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import os
 import re
@@ -318,6 +319,21 @@ def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str =
 
 def lora_parameters(model: nn.Module) -> list[nn.Parameter]:
     return [p for n, p in model.named_parameters() if "lora_" in n]
+
+
+def merge_lora(model: nn.Module) -> nn.Module:
+    """A copy of `model` with every LoRA folded into its base weight, W' = W + (alpha / r) B A, as plain nn.Linear
+    layers: the same network as the base, so the Executor samples at exactly the base's cost. Adapters that are
+    switched off are dropped, not merged."""
+    out = copy.deepcopy(model)
+    for n, m in list(out.named_modules()):
+        if isinstance(m, LoRALinear):
+            lin = m.base
+            if m.enabled:
+                lin.weight.data += m.scale * m.lora_B.data @ m.lora_A.data
+            parent_name, _, child = n.rpartition(".")
+            setattr(out.get_submodule(parent_name) if parent_name else out, child, lin)
+    return out
 
 
 @contextlib.contextmanager

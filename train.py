@@ -147,6 +147,14 @@ class Args:
     """awm ratio: exp_first (Tab. 3) | sum_first"""
     nft_beta: float = 1.0
     """DiffusionNFT's implicit-policy step"""
+    alternate: int = 0
+    """Alg. 2: every N-th iteration is a Demonstrator round (RL on a Demonstrator phi of its own, anchored to the
+    base); 0 = the Demonstrator stays the fixed base (Alg. 1, the main WMSD setting)"""
+    beta_phi: float = 1.0
+    """Alg. 2: weight of the Demonstrator's anchor to the base, L_base"""
+    executor_update: str = "wmsd"
+    """Executor rounds: wmsd (L_RL + beta_d L_anchor, Eq. 12) | off (off-policy distillation from the Demonstrator,
+    Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
 
 
 def parse_args(argv=None) -> Args:
@@ -173,10 +181,11 @@ def parse_args(argv=None) -> Args:
         p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
-                          ("awm_ratio", ("exp_first", "sum_first"))):
+                          ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
-    for name in ("beta_d", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip", "clip_range"):
+    for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
+                 "clip_range", "alternate"):
         if getattr(args, name) < 0:
             p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
     if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:
@@ -283,11 +292,11 @@ def _batch(pairs: list, idx) -> tuple:
     return np.stack([p.frame0 for p in ps]), [p.task.text for p in ps], [p.d_vlm for p in ps]
 
 
-def evaluate_executor(model, args: Args, demonstrator: bool = False) -> dict:
+def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> dict:
     """Bench scores of the Executor given T -- or, with demonstrator=True, of the Demonstrator (adapters off)
     given the toy VLM's D. Same noise seed (0) every time, so curves compare like with like."""
-    ctx = models.adapters_disabled(model) if demonstrator else contextlib.nullcontext()
-    with ctx:
+    ctx = models.adapters_disabled(model) if demonstrator is True else contextlib.nullcontext()
+    with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else "task", args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps)
     return res
@@ -442,33 +451,60 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
     return {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
 
 
-def rl_step(model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen) -> dict:
-    """One iteration of Alg. 1 on tasks_per_step (image, T, D), each repeated group_size times."""
-    G = args.group_size
-    frame0, tasks, descs = np.repeat(frame0, G, axis=0), [t for t in tasks for _ in range(G)], \
-        [d for d in descs for _ in range(G)]
-    groups = torch.arange(len(tasks)) // G
-    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
-    x_0 = torch.randn(len(tasks), *model.latent_shape(), generator=gen)
-    t0 = time.time()
-    # line 5: rollouts tau ~ p_theta(. | I, T); the velocities along the way are kept for Eq. 9
+def _rollouts(net, c: dict, args: Args, gen, sde: bool):
+    """Alg. 1 line 5: one rollout per row of c from fresh noise, by the ODE or the SDE sampler; the velocities along
+    the way are kept (Eq. 9 reuses them). Returns (rl.Rollouts, velocities (S, N, ...))."""
     vs = []
 
-    def v_E(x, t):
-        vs.append(model(x, t, c_E))
+    def v(x, t):
+        vs.append(net(x, t, c))
         return vs[-1]
 
+    x_0 = torch.randn(len(c["ids"]), *net.latent_shape(), generator=gen)
     with torch.no_grad():
-        if args.trainer in rl.NEEDS_SDE or args.sampler == "sde":
-            xs, ts, log_probs = flow.sample_sde(v_E, x_0, args.sample_steps, args.noise_level, gen)
+        if sde:
+            xs, ts, log_probs = flow.sample_sde(v, x_0, args.sample_steps, args.noise_level, gen)
         else:
-            (xs, ts), log_probs = flow.sample_ode(v_E, x_0, args.sample_steps, return_trajectory=True), None
-    ro = rl.Rollouts(xs, ts, c_E, log_probs, args.noise_level)
-    videos = model.decode(xs[-1], frame0)
+            (xs, ts), log_probs = flow.sample_ode(v, x_0, args.sample_steps, return_trajectory=True), None
+    return rl.Rollouts(xs, ts, c, log_probs, args.noise_level), torch.stack(vs)
+
+
+def _update(opt, params, loss: torch.Tensor, what: str) -> float:
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"non-finite {what} loss {loss.item()}")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
+    opt.step()
+    return float(gnorm)
+
+
+def _mean(x: torch.Tensor) -> float:
+    return float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")
+
+
+def _repeat(frame0, tasks, descs, G):
+    return (np.repeat(frame0, G, axis=0), [t for t in tasks for _ in range(G)], [d for d in descs for _ in range(G)],
+            torch.arange(len(tasks) * G) // G)
+
+
+def rl_step(model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen, teacher=None) -> dict:
+    """One Executor iteration of Alg. 1 (Alg. 2 lines 18-25) on tasks_per_step (image, T, D), each repeated
+    group_size times. `teacher`: a trained Demonstrator (Alg. 2); None = the base with adapters off."""
+    frame0, tasks, descs, groups = _repeat(frame0, tasks, descs, args.group_size)
+    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
+    t0 = time.time()
+    if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
+        traj, _ = _rollouts(teacher if teacher is not None else _Demonstrator(model), c_D, args, gen, sde=False)
+        loss = distill.off_policy_loss(model, (traj.xs, traj.ts), c_E, c_D, gen, teacher)
+        gnorm = _update(opt, params, loss, "off-policy")
+        return {"loss": loss.item(), "grad_norm": gnorm, "sample_s": time.time() - t0}
+    ro, vs = _rollouts(model, c_E, args, gen, sde=args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
+    videos = model.decode(ro.x1, frame0)
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward
     rewards = judge_rollouts(videos, tasks)
-    rewards["distill"] = (distill.distill_reward(model, (xs, ts), c_E, c_D, student_v=torch.stack(vs))
+    rewards["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher)
                           if args.lambda_distill > 0 else torch.zeros(len(tasks)))
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
     A = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
@@ -476,20 +512,47 @@ def rl_step(model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, des
     # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
     for _ in range(args.inner_epochs):
         l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
-        l_anchor = distill.anchor_loss(model, (xs, ts), c_E, c_D, gen) if args.beta_d > 0 else None
+        l_anchor = distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher) if args.beta_d > 0 else None
         loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite loss {loss.item()} (L_RL {l_rl.item()})")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
-        opt.step()
-    nan = lambda x: float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")  # noqa: E731
+        gnorm = _update(opt, params, loss, "Executor")
     return {"loss": loss.item(), "l_rl": l_rl.item(), "l_anchor": None if l_anchor is None else l_anchor.item(),
-            "grad_norm": float(gnorm), "r_task": nan(rewards["task"]), "r_cons": nan(rewards["consistency"]),
-            "r_distill": float(rewards["distill"].mean()), "solved": nan(rewards["solved"]),
+            "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
+            "r_distill": float(rewards["distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int((~torch.isfinite(rewards["task"])).sum()), "adv_abs": float(A.abs().mean()),
             "sample_s": t1 - t0, "reward_s": t2 - t1, "update_s": time.time() - t2, **info}
+
+
+class _Demonstrator(torch.nn.Module):
+    """The base with adapters off, as a network of its own (for sampling the fixed Demonstrator's trajectories)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def latent_shape(self):
+        return self.model.latent_shape()
+
+    def forward(self, x, t, c):
+        with models.adapters_disabled(self.model):
+            return self.model(x, t, c)
+
+
+def demonstrator_round(demo, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen) -> dict:
+    """Alg. 2 lines 11-16: the Demonstrator phi (base + its own LoRA) rolls out under c_D, is judged on the task T,
+    and is updated by L_RL(phi) + beta_phi L_base, where L_base is the anchor of Eq. 11 with the *base* f_0 (phi's
+    adapters off) as the reference, on phi's own states, under c_D."""
+    frame0, tasks, descs, groups = _repeat(frame0, tasks, descs, args.group_size)
+    c_D = demo.condition(frame0, descs)
+    ro, _ = _rollouts(demo, c_D, args, gen, sde=args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
+    rewards = judge_rollouts(demo.decode(ro.x1, frame0), tasks)
+    weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
+    A = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
+    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A, cfg, gen)
+    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen)     # phi vs f_0, both under c_D
+    loss = rl.final_loss(l_rl, l_base, args.beta_phi)
+    gnorm = _update(opt, params, loss, "Demonstrator")
+    return {"demo_round": True, "loss": loss.item(), "grad_norm": gnorm, "r_task": _mean(rewards["task"]),
+            "r_cons": _mean(rewards["consistency"]), "solved": _mean(rewards["solved"])}
 
 
 def rl_stage(args: Args) -> dict:
@@ -505,6 +568,12 @@ def rl_stage(args: Args) -> dict:
     model, _ = models.load_checkpoint(args.init or None)
     base_T = evaluate_executor(model, args)                       # no adapters yet: the base given T
     demo = evaluate_executor(model, args, demonstrator=True)
+    demo_net = demo_opt = demo_params = None
+    if args.alternate > 0:       # Alg. 2: a Demonstrator phi of its own, trained in every N-th iteration
+        demo_net = copy.deepcopy(model)
+        models.add_lora(demo_net, args.lora_rank, args.lora_alpha)
+        demo_params = models.lora_parameters(demo_net)
+        demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
     models.add_lora(model, args.lora_rank, args.lora_alpha)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
@@ -520,14 +589,17 @@ def rl_stage(args: Args) -> dict:
     for step in range(1, args.steps + 1):
         t0 = time.time()
         frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.tasks_per_step, replace=False))
-        rec = {"step": step, **rl_step(model, opt, params, args, cfg, frame0, tasks, descs, gen),
-               "step_seconds": time.time() - t0}
+        if args.alternate > 0 and step % args.alternate == 0:
+            rec = demonstrator_round(demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
+        else:
+            rec = rl_step(model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net)
+        rec = {"step": step, **rec, "step_seconds": time.time() - t0}
         logf.write(json.dumps(rec) + "\n")
         logf.flush()
-        print(f"step {step:4d}/{args.steps} | r_task {rec['r_task']:+.2f} solved {rec['solved']:.2f} "
-              f"r_cons {rec['r_cons']:+.2f} r_distill {rec['r_distill']:.4f} | loss {rec['loss']:+.4f} "
-              f"grad {rec['grad_norm']:.2f} | {rec['step_seconds']:.1f} s | {_eta(loop_start, step, args.steps)}",
-              flush=True)
+        what = ("Demonstrator round | " if rec.get("demo_round") else "") + " ".join(
+            f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec)
+        print(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
+              f"{rec['step_seconds']:.1f} s | {_eta(loop_start, step, args.steps)}", flush=True)
         if step % args.eval_every == 0 or step == args.steps:
             res = evaluate_executor(model, args)
             evals.append({"step": step, **{k: res[k] for k in keys}})
@@ -537,8 +609,10 @@ def rl_stage(args: Args) -> dict:
     logf.close()
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
     models.save_checkpoint(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-    final = evaluate_executor(model, args)
+    final = evaluate_executor(models.merge_lora(model), args)   # LoRA folded in: the base's network and cost
     rows = {"Base (T)": base_T, "Base + VLM (Demonstrator, toy VLM's D)": demo, f"WMSD ({args.trainer}, T)": final}
+    if demo_net is not None:
+        rows["trained Demonstrator phi (toy VLM's D)"] = evaluate_executor(demo_net, args, demonstrator="trained")
     table = ["| model | task | agent | consistency | avg | s/video |", "|---|---|---|---|---|---|"]
     table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
               f"{r['seconds_per_video']:.4f} |" for name, r in rows.items()]

@@ -66,6 +66,13 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training()
             assert torch.equal(model(x, t, c), base)     # ... the Demonstrator did not
         assert not torch.allclose(model(x, t, c), base)  # and the adapters are back on after the block
     assert all(torch.equal(p, before[n]) for n, p in model.named_parameters() if "lora_" not in n)
+    # merged: the Executor's outputs from a plain network with the base's parameter count (same sampling cost)
+    merged = models.merge_lora(model)
+    n_base = sum(p.numel() for n, p in model.named_parameters() if "lora_" not in n)
+    assert not any(isinstance(m, models.LoRALinear) for m in merged.modules())
+    assert sum(p.numel() for p in merged.parameters()) == n_base
+    with torch.no_grad():
+        assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)
 
 
 def test_checkpoint_round_trip_and_clear_errors(tmp_path, small):
