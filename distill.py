@@ -56,11 +56,14 @@ def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict,
     return (model(x_t, t, c_E) - teacher_velocity(model, x_t, t, c_D, teacher)).pow(2).flatten(1).mean(1)
 
 
-def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None):
+def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None,
+                 shard: tuple | None = None):
     """One random grid state per sample: k ~ U{0 .. S-1} (the final state t = 1 is never an input of the sampler).
-    xs (S+1, B, ...) -> x (B, ...), t (B,)."""
+    xs (S+1, B, ...) -> x (B, ...), t (B,). shard = (offset, total): these B samples are rows offset.. of a batch of
+    `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard)."""
     S, B = xs.shape[0] - 1, xs.shape[1]
-    k = torch.randint(0, S, (B,), generator=generator)
+    off, total = shard or (0, B)
+    k = torch.randint(0, S, (total,), generator=generator)[off:off + B]
     return xs[k, torch.arange(B)].detach(), ts[k]
 
 
@@ -68,19 +71,21 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
 # off-policy (Eq. 3), on-policy (Eq. 5), anchor (Eq. 11)
 # ----------------------------------------------------------------------------------------------------------------
 
-def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None) -> torch.Tensor:
+def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
+                    shard: tuple | None = None) -> torch.Tensor:
     """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
     not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
-    x_t, t = _pick_states(*teacher_traj, generator)
+    x_t, t = _pick_states(*teacher_traj, generator, shard)
     return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 
-def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None) -> torch.Tensor:
+def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
+                shard: tuple | None = None) -> torch.Tensor:
     """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample). Scalar."""
-    x_t, t = _pick_states(*student_traj, generator)
+    x_t, t = _pick_states(*student_traj, generator, shard)
     return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 

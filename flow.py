@@ -111,19 +111,25 @@ def sde_step(v: torch.Tensor, x: torch.Tensor, t: torch.Tensor, dt: float, noise
 
 
 def sample_sde(v_theta: VelocityField, x_0: torch.Tensor, steps: int, noise_level: float = 0.7,
-               generator: torch.Generator | None = None):
+               generator: torch.Generator | None = None, noises: torch.Tensor | None = None):
     """Roll out the SDE of sde_step on the uniform grid from t = 0 to t = 1. Returns (xs (steps + 1, B, ...),
     ts (steps + 1,), log_probs (B, steps)): every state and the log-probability of every transition
     x_{t_k} -> x_{t_{k+1}} under the policy that drew it (Flow-GRPO's old log-probs). noise_level = 0 would be the
-    ODE, but the Gaussian has no density then; use sample_ode. Wrap in torch.no_grad() for rollouts."""
+    ODE, but the Gaussian has no density then; use sample_ode. Wrap in torch.no_grad() for rollouts.
+    `noises` (steps, B, ...): the standard normal draws to use instead of drawing them (a multi-process run draws
+    them for the whole batch and gives each process its slice, so it samples what one process would)."""
     if noise_level <= 0:
         raise ValueError("sample_sde needs noise_level > 0 (noise_level 0 is the ODE: use sample_ode)")
     ts = time_grid(steps, x_0.device)
     x, xs, lps = x_0, [x_0], []
     for k in range(steps):
         t = ts[k].expand(x.shape[0])
-        x, lp, _, _ = sde_step(v_theta(x, t), x, t, float(ts[k + 1] - ts[k]), noise_level, float(ts[1]),
-                               generator=generator)
+        v, dt = v_theta(x, t), float(ts[k + 1] - ts[k])
+        x_next = None
+        if noises is not None:   # the same arithmetic as sde_step's own draw
+            _, _, mu, s = sde_step(v, x, t, dt, noise_level, float(ts[1]), x_next=x)
+            x_next = mu + _bcast(s, x) * noises[k]
+        x, lp, _, _ = sde_step(v, x, t, dt, noise_level, float(ts[1]), x_next=x_next, generator=generator)
         xs.append(x)
         lps.append(lp)
     return torch.stack(xs), ts, torch.stack(lps, 1)

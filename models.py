@@ -371,8 +371,12 @@ def save_checkpoint(model: nn.Module, path: str, meta: dict | None = None) -> No
     state = {"backend": model.backend, "config": asdict(model.cfg),
              "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta or {}}
     tmp = f"{path}.tmp{os.getpid()}"
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:                      # on failure the previous file is untouched and no temp file is left
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:

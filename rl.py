@@ -111,6 +111,9 @@ class Rollouts:
     log_probs: torch.Tensor | None = None
     noise_level: float = 0.7
     draws: dict = field(default_factory=dict)
+    shard: tuple | None = None
+    """(offset, total): these N rollouts are rows offset..offset+N-1 of a batch of `total` split across processes;
+    random draws are made for the whole batch and sliced, so every process draws what one process would"""
 
     @property
     def x1(self) -> torch.Tensor:
@@ -232,10 +235,11 @@ def _renoise(ro: Rollouts, n_t: int, generator=None):
     x_t = (1 - t) eps + t x_1 (Eq. 2's path) and the flow-matching target u = x_1 - eps."""
     if "renoise" not in ro.draws:
         N = ro.x1.shape[0]
-        strata = (torch.arange(n_t).repeat_interleave(N) + torch.rand(n_t * N, generator=generator)) / n_t
-        t = 0.98 * strata
+        off, total = ro.shard or (0, N)
+        strata = (torch.arange(n_t)[:, None] + torch.rand(n_t, total, generator=generator)) / n_t    # (n_t, total)
+        t = (0.98 * strata)[:, off:off + N].reshape(-1)
+        eps = torch.randn(n_t, total, *ro.x1.shape[1:], generator=generator)[:, off:off + N].flatten(0, 1)
         x1 = ro.x1.repeat(n_t, *([1] * (ro.x1.dim() - 1)))
-        eps = torch.randn(x1.shape, generator=generator)
         ro.draws["renoise"] = (flow.interpolate(eps, x1, t), t, x1 - eps)
     return ro.draws["renoise"]
 
@@ -309,7 +313,7 @@ def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
     Good samples pull v+ (and so v_theta) towards their flow, bad ones push v- towards theirs -- i.e. v_theta away.
     No likelihood and no sampler in the loss: any sampler can produce x_1."""
-    N, n_t = ro.x1.shape[0], cfg.timesteps
+    n_t = cfg.timesteps
     x_t, t, u = _renoise(ro, n_t, generator)
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 import bench
 import distill
@@ -152,6 +153,10 @@ class Args:
     base); 0 = the Demonstrator stays the fixed base (Alg. 1, the main WMSD setting)"""
     beta_phi: float = 1.0
     """Alg. 2: weight of the Demonstrator's anchor to the base, L_base"""
+    save_every: int = 10
+    """steps between resumable state checkpoints (<run_dir>/state.pt, atomic)"""
+    resume: bool = False
+    """continue the run in --run_dir from its state.pt (same settings; --steps may grow)"""
     executor_update: str = "wmsd"
     """Executor rounds: wmsd (L_RL + beta_d L_anchor, Eq. 12) | off (off-policy distillation from the Demonstrator,
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
@@ -171,7 +176,7 @@ def parse_args(argv=None) -> Args:
     args = Args(**vars(p.parse_args(argv)))
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
                  "sample_steps", "train_pairs", "eval_every", "eval_n", "tasks_per_step", "inner_epochs",
-                 "awm_timesteps"):
+                 "awm_timesteps", "save_every"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
@@ -382,7 +387,8 @@ def distill_stage(args: Args) -> dict:
             model, evals = distill_variant(args, v, pairs, logf)
             results["variants"][v] = evals
             out = args.out if (args.out and len(variants) == 1) else os.path.join(args.run_dir, f"executor_{v}.pt")
-            models.save_checkpoint(model, out, {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)})
+            models.save_checkpoint(models.merge_lora(model), out,  # LoRA folded in: loadable by bench.py
+                                   {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)})
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
     plot_fig4_left(results, os.path.join(args.run_dir, "fig4_left.png"))
     with open(os.path.join(args.run_dir, "distill_summary.json"), "w") as f:
@@ -439,42 +445,115 @@ def rl_config(args: Args) -> rl.RLConfig:
 
 
 def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
-    """Alg. 1 line 6: the judges' graded scores of each rollout as rewards, NaN where no judgment is possible
-    (skipped by rl.advantages, counted in the log). Returns {"task": (N,), "consistency": (N,), "solved": (N,)}."""
-    out = {"task": [], "consistency": [], "solved": []}
+    """Alg. 1 line 6: the judges' graded scores of each rollout as rewards. Where no judgment is possible -- a
+    malformed video, a missing agent, or a judge that raises -- the score is NaN: rl.advantages skips that rollout
+    and the log counts it (paper Tab. 4); a judge failure never stops the run.
+    Returns {"task", "consistency", "solved", "invalid", "judge_errors"}: (N,) tensors."""
+    out = {"task": [], "consistency": [], "solved": [], "judge_errors": []}
     for v, t in zip(videos, tasks):
-        r = reward.read_video(v)
-        jt, jc = reward.judge_task(r, t) if r else reward.INVALID, reward.judge_consistency(r) if r else reward.INVALID
+        errors = 0
+        try:
+            r = reward.read_video(v)
+            jt = reward.judge_task(r, t) if r else reward.INVALID
+        except Exception:  # noqa: BLE001 -- a failing judge is counted and skipped, like a malformed VLM answer
+            r, jt, errors = None, reward.INVALID, errors + 1
+        try:
+            jc = reward.judge_consistency(r) if r else reward.INVALID
+        except Exception:  # noqa: BLE001
+            jc, errors = reward.INVALID, errors + 1
         out["task"].append(np.nan if jt.score is None else jt.score)
         out["consistency"].append(np.nan if jc.score is None else jc.score)
         out["solved"].append(np.nan if jt.yes is None else float(jt.yes and bool(jc.yes)))
-    return {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
+        out["judge_errors"].append(errors)
+    res = {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
+    res["invalid"] = torch.isnan(res["task"]) | torch.isnan(res["consistency"])
+    return res
 
 
-def _rollouts(net, c: dict, args: Args, gen, sde: bool):
-    """Alg. 1 line 5: one rollout per row of c from fresh noise, by the ODE or the SDE sampler; the velocities along
-    the way are kept (Eq. 9 reuses them). Returns (rl.Rollouts, velocities (S, N, ...))."""
+# ---- processes: the same loop under torchrun (gloo on CPU, NCCL on GPUs) ------------------------------------------
+
+def _dist_init() -> None:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+
+
+def _rank() -> int:
+    return dist.get_rank() if dist.is_initialized() else 0
+
+
+def _world() -> int:
+    return dist.get_world_size() if dist.is_initialized() else 1
+
+
+def _shard(n: int) -> tuple[int, int]:
+    """This process's rows of a batch of n: (offset, count); contiguous, equal shares."""
+    w = _world()
+    if n % w:
+        raise ValueError(f"rollouts per step ({n}) must be divisible by the number of processes ({w})")
+    return _rank() * (n // w), n // w
+
+
+def _gather(x: torch.Tensor) -> torch.Tensor:
+    """Concatenate every process's (n, ...) shard in rank order: the whole batch on every process."""
+    if not dist.is_initialized():
+        return x
+    parts = [torch.empty_like(x) for _ in range(_world())]
+    dist.all_gather(parts, x.contiguous())
+    return torch.cat(parts)
+
+
+def _mean_over_processes(x: float) -> float:
+    if not dist.is_initialized():
+        return x
+    t = torch.tensor([x], dtype=torch.float64)
+    dist.all_reduce(t)
+    return float(t) / _world()
+
+
+class TrainingFault(RuntimeError):
+    """A non-finite reward, advantage or loss: the run stops, the last good checkpoint is left as it was."""
+
+
+def _check_finite(step: int, name: str, x: torch.Tensor, skip: torch.Tensor | None = None) -> None:
+    bad = ~torch.isfinite(x) if skip is None else (~torch.isfinite(x) & ~skip)
+    if bad.any():
+        raise TrainingFault(f"step {step}: {name} is not finite ({int(bad.sum())} of {bad.numel()} values, e.g. "
+                            f"{x[bad].flatten()[0].item()})")
+
+
+# ---- one iteration ----------------------------------------------------------------------------------------------
+
+def _rollouts(net, c: dict, x_0: torch.Tensor, args: Args, noises: torch.Tensor | None):
+    """Alg. 1 line 5: one rollout per row of c from x_0, by the SDE sampler if `noises` (its standard normal draws)
+    are given, else the ODE; the velocities along the way are kept (Eq. 9 reuses them).
+    Returns (rl.Rollouts, velocities (S, n, ...))."""
     vs = []
 
     def v(x, t):
         vs.append(net(x, t, c))
         return vs[-1]
 
-    x_0 = torch.randn(len(c["ids"]), *net.latent_shape(), generator=gen)
     with torch.no_grad():
-        if sde:
-            xs, ts, log_probs = flow.sample_sde(v, x_0, args.sample_steps, args.noise_level, gen)
+        if noises is not None:
+            xs, ts, log_probs = flow.sample_sde(v, x_0, args.sample_steps, args.noise_level, noises=noises)
         else:
             (xs, ts), log_probs = flow.sample_ode(v, x_0, args.sample_steps, return_trajectory=True), None
     return rl.Rollouts(xs, ts, c, log_probs, args.noise_level), torch.stack(vs)
 
 
-def _update(opt, params, loss: torch.Tensor, what: str) -> float:
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"non-finite {what} loss {loss.item()}")
+def _update(step: int, opt, params, loss: torch.Tensor, what: str) -> float:
+    """Backpropagate, average the LoRA gradients over processes (the same update a single process makes on the
+    whole batch), clip (Table 3: max grad norm 1), step."""
+    _check_finite(step, f"{what} loss", loss.detach())
     opt.zero_grad(set_to_none=True)
     loss.backward()
-    gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
+    if dist.is_initialized():
+        for p in params:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            dist.all_reduce(p.grad)
+            p.grad /= _world()
+    gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)
     opt.step()
     return float(gnorm)
 
@@ -483,43 +562,67 @@ def _mean(x: torch.Tensor) -> float:
     return float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")
 
 
-def _repeat(frame0, tasks, descs, G):
-    return (np.repeat(frame0, G, axis=0), [t for t in tasks for _ in range(G)], [d for d in descs for _ in range(G)],
-            torch.arange(len(tasks) * G) // G)
+def _draws(n_total: int, latent: tuple, args: Args, gen, sde: bool):
+    """The step's sampling noise for the whole batch (every process draws the same and keeps its rows)."""
+    x_0 = torch.randn(n_total, *latent, generator=gen)
+    noises = torch.randn(args.sample_steps, n_total, *latent, generator=gen) if sde else None
+    return x_0, noises
 
 
-def rl_step(model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen, teacher=None) -> dict:
+def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen,
+            teacher=None) -> dict:
     """One Executor iteration of Alg. 1 (Alg. 2 lines 18-25) on tasks_per_step (image, T, D), each repeated
-    group_size times. `teacher`: a trained Demonstrator (Alg. 2); None = the base with adapters off."""
-    frame0, tasks, descs, groups = _repeat(frame0, tasks, descs, args.group_size)
+    group_size times; split across processes under torchrun. `teacher`: a trained Demonstrator (Alg. 2); None =
+    the base with adapters off."""
+    G, N = args.group_size, len(tasks) * args.group_size
+    groups = torch.arange(N) // G
+    off, n = _shard(N)
+    rows = slice(off, off + n)
+    frame0, tasks, descs = np.repeat(frame0, G, axis=0)[rows], [t for t in tasks for _ in range(G)][rows], \
+        [d for d in descs for _ in range(G)][rows]
     c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
+    sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
+    x_0, noises = _draws(N, model.latent_shape(), args, gen, sde)
+    x_0, noises = x_0[rows], (None if noises is None else noises[:, rows])
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
-        traj, _ = _rollouts(teacher if teacher is not None else _Demonstrator(model), c_D, args, gen, sde=False)
-        loss = distill.off_policy_loss(model, (traj.xs, traj.ts), c_E, c_D, gen, teacher)
-        gnorm = _update(opt, params, loss, "off-policy")
-        return {"loss": loss.item(), "grad_norm": gnorm, "sample_s": time.time() - t0}
-    ro, vs = _rollouts(model, c_E, args, gen, sde=args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
+        traj, _ = _rollouts(teacher if teacher is not None else _Demonstrator(model), c_D, x_0, args, None)
+        loss = distill.off_policy_loss(model, (traj.xs, traj.ts), c_E, c_D, gen, teacher, shard=(off, N))
+        gnorm = _update(step, opt, params, loss, "off-policy")
+        return {"loss": _mean_over_processes(loss.item()), "grad_norm": gnorm, "sample_s": time.time() - t0}
+    ro, vs = _rollouts(model, c_E, x_0, args, noises)
+    ro.shard = (off, N)
     videos = model.decode(ro.x1, frame0)
     t1 = time.time()
-    # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward
-    rewards = judge_rollouts(videos, tasks)
-    rewards["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher)
-                          if args.lambda_distill > 0 else torch.zeros(len(tasks)))
+    # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
+    local = judge_rollouts(videos, tasks)
+    local["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher)
+                        if args.lambda_distill > 0 else torch.zeros(n))
+    rewards = {k: _gather(v) for k, v in local.items()}
+    for k in ("task", "consistency"):
+        _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
+    _check_finite(step, "reward r_distill", rewards["distill"])
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
-    A = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
+    A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
+    _check_finite(step, "advantage", A_all)
+    A = A_all[rows]
     t2 = time.time()
     # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
     for _ in range(args.inner_epochs):
         l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
-        l_anchor = distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher) if args.beta_d > 0 else None
+        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, shard=(off, N))
+                    if args.beta_d > 0 else None)
         loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
-        gnorm = _update(opt, params, loss, "Executor")
-    return {"loss": loss.item(), "l_rl": l_rl.item(), "l_anchor": None if l_anchor is None else l_anchor.item(),
+        gnorm = _update(step, opt, params, loss, "Executor")
+    return {"loss": _mean_over_processes(loss.item()), "l_rl": _mean_over_processes(l_rl.item()),
+            "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor.item()),
             "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
             "r_distill": float(rewards["distill"].mean()), "solved": _mean(rewards["solved"]),
-            "invalid": int((~torch.isfinite(rewards["task"])).sum()), "adv_abs": float(A.abs().mean()),
-            "sample_s": t1 - t0, "reward_s": t2 - t1, "update_s": time.time() - t2, **info}
+            "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
+            "adv_abs": float(A_all.abs().mean()), "A": [round(a, 6) for a in A_all.tolist()],
+            "rollouts_per_s": N / max(t1 - t0, 1e-9),
+            "sample_s": t1 - t0, "reward_s": t2 - t1, "update_s": time.time() - t2,
+            **{k: _mean_over_processes(v) for k, v in info.items()}}
 
 
 class _Demonstrator(torch.nn.Module):
@@ -537,37 +640,106 @@ class _Demonstrator(torch.nn.Module):
             return self.model(x, t, c)
 
 
-def demonstrator_round(demo, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen) -> dict:
+def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs,
+                       gen) -> dict:
     """Alg. 2 lines 11-16: the Demonstrator phi (base + its own LoRA) rolls out under c_D, is judged on the task T,
     and is updated by L_RL(phi) + beta_phi L_base, where L_base is the anchor of Eq. 11 with the *base* f_0 (phi's
     adapters off) as the reference, on phi's own states, under c_D."""
-    frame0, tasks, descs, groups = _repeat(frame0, tasks, descs, args.group_size)
+    G, N = args.group_size, len(tasks) * args.group_size
+    off, n = _shard(N)
+    rows = slice(off, off + n)
+    frame0, tasks, descs = np.repeat(frame0, G, axis=0)[rows], [t for t in tasks for _ in range(G)][rows], \
+        [d for d in descs for _ in range(G)][rows]
     c_D = demo.condition(frame0, descs)
-    ro, _ = _rollouts(demo, c_D, args, gen, sde=args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
-    rewards = judge_rollouts(demo.decode(ro.x1, frame0), tasks)
+    sde = args.trainer in rl.NEEDS_SDE or args.sampler == "sde"
+    x_0, noises = _draws(N, demo.latent_shape(), args, gen, sde)
+    ro, _ = _rollouts(demo, c_D, x_0[rows], args, None if noises is None else noises[:, rows])
+    ro.shard = (off, N)
+    rewards = {k: _gather(v) for k, v in judge_rollouts(demo.decode(ro.x1, frame0), tasks).items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
-    A = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
-    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A, cfg, gen)
-    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen)     # phi vs f_0, both under c_D
+    A_all = rl.advantages({k: rewards[k] for k in weights}, weights, torch.arange(N) // G, args.adv_agg,
+                          args.adv_clip)
+    _check_finite(step, "Demonstrator advantage", A_all)
+    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[rows], cfg, gen)
+    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen, shard=(off, N))   # phi vs f_0, under c_D
     loss = rl.final_loss(l_rl, l_base, args.beta_phi)
-    gnorm = _update(opt, params, loss, "Demonstrator")
-    return {"demo_round": True, "loss": loss.item(), "grad_norm": gnorm, "r_task": _mean(rewards["task"]),
-            "r_cons": _mean(rewards["consistency"]), "solved": _mean(rewards["solved"])}
+    gnorm = _update(step, opt, params, loss, "Demonstrator")
+    return {"demo_round": True, "loss": _mean_over_processes(loss.item()), "grad_norm": gnorm,
+            "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
+            "solved": _mean(rewards["solved"])}
+
+
+# ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
+
+_RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy")
+
+
+def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
+               args: Args) -> None:
+    """Everything a resumed run needs, written atomically (temp file + rename): the LoRA weights (the base is the
+    --init checkpoint), optimizer state, the Demonstrator's LoRA and optimizer under --alternate, every RNG state,
+    the evaluations so far and the step."""
+    lora = lambda m: {k: v.detach().clone() for k, v in m.state_dict().items() if "lora_" in k}  # noqa: E731
+    state = {"step": step, "lora": lora(model), "opt": opt.state_dict(),
+             "demo_lora": lora(demo_net) if demo_net is not None else None,
+             "demo_opt": demo_opt.state_dict() if demo_opt is not None else None,
+             "rng_numpy": rng.bit_generator.state, "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
+             "py_random": random.getstate(), "evals": evals, "fixed": fixed, "args": dataclasses.asdict(args)}
+    tmp = f"{path}.tmp{os.getpid()}"
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:                      # interrupted or failed: the previous state.pt is untouched, no stray temp file
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def load_state(path: str, args: Args) -> dict:
+    """Read a state written by save_state; a clear error if it is missing, corrupt, or from a different run."""
+    if not os.path.isfile(path):
+        raise ValueError(f"--resume: no state to resume at {path!r}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        step, saved = int(state["step"]), state["args"]
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"--resume: {path!r} is corrupt: {type(e).__name__}: {str(e).splitlines()[0][:200]}") from None
+    diff = [k for k, v in dataclasses.asdict(args).items() if k not in _RESUME_FREE and saved.get(k) != v]
+    if diff:
+        raise ValueError(f"--resume: {path!r} was written with different settings: "
+                         + ", ".join(f"--{k} {saved.get(k)!r} (now {getattr(args, k)!r})" for k in diff))
+    if step >= args.steps:
+        raise ValueError(f"--resume: the saved run already reached step {step} of --steps {args.steps}")
+    return state
 
 
 def rl_stage(args: Args) -> dict:
     """Alg. 1 from the shipped base: every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
     (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
-    L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; ends with the bench table (Base given T,
-    Demonstrator given the toy VLM's D, Executor given T), a curve, a GIF and the LoRA checkpoint."""
+    L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; saves a resumable state every save_every
+    steps; ends with the bench table (Base given T, Demonstrator given the toy VLM's D, Executor given T), a curve,
+    a GIF and the Executor checkpoint (LoRA merged: loadable by bench.py). Under torchrun the rollouts of each step
+    are split across processes and rank 0 alone evaluates and writes."""
+    _dist_init()
+    rank0 = _rank() == 0
+    say = print if rank0 else (lambda *a, **k: None)
     rng = seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
-    os.makedirs(args.run_dir, exist_ok=True)
+    state_path = os.path.join(args.run_dir, "state.pt")
+    state = load_state(state_path, args) if args.resume else None
     start = time.time()
+    model, _ = models.load_checkpoint(args.init or None)     # a bad checkpoint stops here, before anything is written
     pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
-    model, _ = models.load_checkpoint(args.init or None)
-    base_T = evaluate_executor(model, args)                       # no adapters yet: the base given T
-    demo = evaluate_executor(model, args, demonstrator=True)
+    if rank0:
+        os.makedirs(args.run_dir, exist_ok=True)
+    keys = ("task", "agent", "consistency", "avg", "seconds_per_video")
+    if state is not None:
+        fixed = state["fixed"]
+    elif rank0:
+        fixed = {"Base (T)": evaluate_executor(model, args),           # no adapters yet: the base given T
+                 "Base + VLM (Demonstrator, toy VLM's D)": evaluate_executor(model, args, demonstrator=True)}
+        fixed = {name: {k: r[k] for k in keys} for name, r in fixed.items()}
+    else:
+        fixed = {}
     demo_net = demo_opt = demo_params = None
     if args.alternate > 0:       # Alg. 2: a Demonstrator phi of its own, trained in every N-th iteration
         demo_net = copy.deepcopy(model)
@@ -578,53 +750,93 @@ def rl_stage(args: Args) -> dict:
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     cfg = rl_config(args)
-    keys = ("task", "agent", "consistency", "avg")
-    print(f"{len(pairs)} training pairs; base given T: task {base_T['task']:.3f} consistency "
-          f"{base_T['consistency']:.3f}; Demonstrator (toy VLM's D): task {demo['task']:.3f} consistency "
-          f"{demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
-    evals = [{"step": 0, **{k: base_T[k] for k in keys}}]
-    logf = open(os.path.join(args.run_dir, "rl.jsonl"), "w")
-    logf.write(json.dumps({"eval": True, **evals[0]}) + "\n")
+    first, log_mode, evals = 1, "w", []
+    if state is not None:      # put every piece back where the interrupted run left it
+        model.load_state_dict(state["lora"], strict=False)
+        opt.load_state_dict(state["opt"])
+        if demo_net is not None:
+            demo_net.load_state_dict(state["demo_lora"], strict=False)
+            demo_opt.load_state_dict(state["demo_opt"])
+        rng.bit_generator.state = state["rng_numpy"]
+        gen.set_state(state["gen"])
+        torch.set_rng_state(state["torch_rng"])
+        random.setstate(state["py_random"])
+        first, evals, log_mode = state["step"] + 1, state["evals"], "a"
+        if rank0:   # the log keeps exactly the steps the state has seen
+            lines = open(os.path.join(args.run_dir, "rl.jsonl")).read().splitlines()
+            with open(os.path.join(args.run_dir, "rl.jsonl"), "w") as f:
+                f.writelines(l + "\n" for l in lines if json.loads(l)["step"] < first)
+        say(f"resumed {state_path} at step {first - 1}")
+    elif rank0:
+        base_T = fixed["Base (T)"]
+        evals = [{"step": 0, **{k: base_T[k] for k in keys[:4]}}]
+    demo = fixed.get("Base + VLM (Demonstrator, toy VLM's D)", {})
+    if rank0:
+        say(f"{len(pairs)} training pairs; {_world()} process(es); base given T: task {fixed['Base (T)']['task']:.3f} "
+            f"consistency {fixed['Base (T)']['consistency']:.3f}; Demonstrator (toy VLM's D): task "
+            f"{demo['task']:.3f} consistency {demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
+    logf = open(os.path.join(args.run_dir, "rl.jsonl"), log_mode) if rank0 else None
+    if logf and first == 1:
+        logf.write(json.dumps({"eval": True, **evals[0]}) + "\n")
     loop_start = time.time()
-    for step in range(1, args.steps + 1):
+    for step in range(first, args.steps + 1):
         t0 = time.time()
         frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.tasks_per_step, replace=False))
-        if args.alternate > 0 and step % args.alternate == 0:
-            rec = demonstrator_round(demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
-        else:
-            rec = rl_step(model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net)
+        try:
+            if args.alternate > 0 and step % args.alternate == 0:
+                rec = demonstrator_round(step, demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
+            else:
+                rec = rl_step(step, model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net)
+        except TrainingFault as e:
+            last = f"the last good state {state_path} is intact" if os.path.exists(state_path) else \
+                "no state was saved yet (--save_every)"
+            raise TrainingFault(f"{e}; stopping -- {last}") from None
         rec = {"step": step, **rec, "step_seconds": time.time() - t0}
-        logf.write(json.dumps(rec) + "\n")
-        logf.flush()
+        if logf:
+            logf.write(json.dumps(rec) + "\n")
+            logf.flush()
         what = ("Demonstrator round | " if rec.get("demo_round") else "") + " ".join(
             f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec)
-        print(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
-              f"{rec['step_seconds']:.1f} s | {_eta(loop_start, step, args.steps)}", flush=True)
+        say(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
+            f"{rec['step_seconds']:.1f} s | {_eta(loop_start, step - first + 1, args.steps - first + 1)}", flush=True)
         if step % args.eval_every == 0 or step == args.steps:
-            res = evaluate_executor(model, args)
-            evals.append({"step": step, **{k: res[k] for k in keys}})
-            logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
-            print(f"  eval step {step}: task {res['task']:.3f} agent {res['agent']:.3f} consistency "
-                  f"{res['consistency']:.3f} avg {res['avg']:.3f}", flush=True)
+            if rank0:
+                res = evaluate_executor(model, args)
+                evals.append({"step": step, **{k: res[k] for k in keys[:4]}})
+                logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
+                say(f"  eval step {step}: task {res['task']:.3f} agent {res['agent']:.3f} consistency "
+                    f"{res['consistency']:.3f} avg {res['avg']:.3f}", flush=True)
+            if dist.is_initialized():
+                dist.barrier()
+        if rank0 and (step % args.save_every == 0 or step == args.steps):
+            logf.flush()      # the log on disk holds every step the state has seen
+            save_state(state_path, step, model, opt, demo_net, demo_opt, rng, gen, evals, fixed, args)
+    if not rank0:
+        dist.destroy_process_group()
+        return {}
     logf.close()
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
-    models.save_checkpoint(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-    final = evaluate_executor(models.merge_lora(model), args)   # LoRA folded in: the base's network and cost
-    rows = {"Base (T)": base_T, "Base + VLM (Demonstrator, toy VLM's D)": demo, f"WMSD ({args.trainer}, T)": final}
+    merged = models.merge_lora(model)            # LoRA folded in: the base's network and cost, loadable by bench.py
+    models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+    final = evaluate_executor(merged, args)
+    rows = {**fixed, f"WMSD ({args.trainer}, T)": {k: final[k] for k in keys}}
     if demo_net is not None:
-        rows["trained Demonstrator phi (toy VLM's D)"] = evaluate_executor(demo_net, args, demonstrator="trained")
+        rows["trained Demonstrator phi (toy VLM's D)"] = {
+            k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
     table = ["| model | task | agent | consistency | avg | s/video |", "|---|---|---|---|---|---|"]
     table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
               f"{r['seconds_per_video']:.4f} |" for name, r in rows.items()]
     summary = {"args": dataclasses.asdict(args), "evals": evals, "minutes": (time.time() - start) / 60,
-               "table": {n: {k: r[k] for k in (*keys, "seconds_per_video")} for n, r in rows.items()}}
+               "table": rows}
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args)
     write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     print("\n".join(table))
-    print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, rl_curve.png, "
+    print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")
+    if dist.is_initialized():
+        dist.destroy_process_group()
     return summary
 
 
@@ -653,7 +865,14 @@ STAGES = {"pretrain": pretrain, "distill": distill_stage, "rl": rl_stage}
 def main(argv=None):
     args = parse_args(argv)
     print("config: " + json.dumps(dataclasses.asdict(args)))
-    STAGES[args.stage](args)
+    try:
+        STAGES[args.stage](args)
+    except (ValueError, FileNotFoundError) as e:   # bad settings, checkpoints or state: one line, exit 2
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except TrainingFault as e:                     # a non-finite quantity: one line, exit 1
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,29 @@
 import os
+import subprocess
 import sys
 
+import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 torch.set_num_threads(2)
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(*args, env=None):
+    """Run a script of the repository (or a module, '-m ...') with this interpreter; capture its output."""
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                          env={**os.environ, **(env or {})})
+
+
+@pytest.fixture(scope="session")
+def tiny_ckpt(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pretrain")
+    ckpt = str(d / "tiny.pt")
+    r = run("train.py", "--stage", "pretrain", "--pretrain_steps", "3", "--pretrain_batch", "4", "--width", "8",
+            "--log_every", "1", "--out", ckpt, "--run_dir", str(d))
+    assert r.returncode == 0, r.stderr
+    assert "step     3/3" in r.stdout and "ETA" in r.stdout
+    assert len(open(d / "pretrain.jsonl").read().splitlines()) == 3
+    return ckpt

@@ -41,7 +41,6 @@ def lora_model():
     m = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
     nn.init.normal_(m.out.weight, std=0.05)  # a fresh model ignores its input; fake a trained one
     models.add_lora(m, rank=4, alpha=8)
-    rng = np.random.default_rng(0)
     pairs = world.make_pairs(4, seed=3, error_rate=0.0)
     frame0 = np.stack([p.frame0 for p in pairs])
     c_E = m.condition(frame0, [p.task.text for p in pairs])

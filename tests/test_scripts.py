@@ -1,28 +1,10 @@
 """Smoke runs of the entry scripts with tiny budgets, and their handling of bad input."""
 import json
 import os
-import subprocess
-import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def run(*args):
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
-
-
-@pytest.fixture(scope="module")
-def tiny_ckpt(tmp_path_factory):
-    d = tmp_path_factory.mktemp("pretrain")
-    ckpt = str(d / "tiny.pt")
-    r = run("train.py", "--stage", "pretrain", "--pretrain_steps", "3", "--pretrain_batch", "4", "--width", "8",
-            "--log_every", "1", "--out", ckpt, "--run_dir", str(d))
-    assert r.returncode == 0, r.stderr
-    assert "step     3/3" in r.stdout and "ETA" in r.stdout
-    assert len(open(d / "pretrain.jsonl").read().splitlines()) == 3
-    return ckpt
+from conftest import ROOT, run
 
 
 def test_distill_stage_smoke(tiny_ckpt, tmp_path):
