@@ -278,7 +278,8 @@ def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed:
     out = []
     for i in range(0, len(texts), batch):
         c = model.condition(frame0[i:i + batch], texts[i:i + batch])
-        x_1 = flow.sample_ode(lambda x, t: model(x, t, c), x_0[i:i + batch].to(c["frame0"].device), steps)
+        dev = next(model.parameters()).device
+        x_1 = flow.sample_ode(lambda x, t: model(x, t, c), x_0[i:i + batch].to(dev), steps)
         out.append(model.decode(x_1, frame0[i:i + batch]))
     return np.concatenate(out)
 
@@ -305,6 +306,8 @@ class LoRALinear(nn.Module):
 def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str = r".*") -> list[str]:
     """Wrap every nn.Linear whose qualified name matches `target` in a LoRALinear; freeze everything else.
     Returns the wrapped names. (Table 3 uses rank 64 / alpha 128 on LTX-2's video attention.)"""
+    if hasattr(model, "add_lora"):          # a backend with its own LoRA (LTX-2: peft through diffusers)
+        return model.add_lora(rank, alpha) if target == r".*" else model.add_lora(rank, alpha, target)
     names = [n for n, m in model.named_modules() if isinstance(m, nn.Linear) and re.fullmatch(target, n)]
     if not names:
         raise ValueError(f"LoRA target {target!r} matches no Linear layer")
@@ -340,14 +343,19 @@ def merge_lora(model: nn.Module) -> nn.Module:
 def adapters_disabled(model: nn.Module):
     """Inside this block the model is the Demonstrator: the same base weights with every adapter switched off."""
     layers = [m for m in model.modules() if isinstance(m, LoRALinear)]
+    peft = [m for m in model.modules() if getattr(m, "_hf_peft_config_loaded", False)]   # diffusers + peft
     before = [m.enabled for m in layers]
     for m in layers:
         m.enabled = False
+    for m in peft:
+        m.disable_adapters()
     try:
         yield model
     finally:
         for m, e in zip(layers, before):
             m.enabled = e
+        for m in peft:
+            m.enable_adapters()
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -359,7 +367,8 @@ SHIPPED_BASE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "checkpo
 
 
 def make_model(backend: str = "toy", **config) -> nn.Module:
-    """Return a freshly initialised model of the named backend. (The LTX-2 backend is added by a later issue.)"""
+    """Return a freshly initialised model of the named backend. (LTX-2 is built from its weights or configs
+    instead: LTX2Video.from_pretrained / LTX2Video.tiny.)"""
     if backend not in BACKENDS:
         raise ValueError(f"unknown model backend {backend!r}; available: {', '.join(BACKENDS)}")
     return BACKENDS[backend](**config)
@@ -379,6 +388,35 @@ def save_checkpoint(model: nn.Module, path: str, meta: dict | None = None) -> No
             os.remove(tmp)
 
 
+def save_lora(model: nn.Module, path: str, meta: dict | None = None) -> None:
+    """Write only the LoRA weights (and meta), atomically: what a real backend's Executor adds to its base."""
+    state = {"lora": {k: v.detach().cpu() for k, v in model.state_dict().items() if "lora_" in k}, "meta": meta or {}}
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def load_lora(model: nn.Module, path: str) -> dict:
+    """Load save_lora's weights into a model that already has the same adapters; a clear error otherwise."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        missing = set(state["lora"]) - set(model.state_dict())
+        if missing:
+            raise KeyError(f"{len(missing)} LoRA weights have no place in this model, e.g. {sorted(missing)[0]}")
+        model.load_state_dict(state["lora"], strict=False)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"LoRA file {path!r} does not exist") from None
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"LoRA file {path!r} is corrupt or does not match this model: {type(e).__name__}: "
+                         f"{str(e).splitlines()[0][:200]}") from None
+    return state.get("meta", {})
+
+
 def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
     """Load a model saved by save_checkpoint (default: the shipped base). Raises a one-line error for a missing,
     corrupt or mismatched file."""
@@ -394,3 +432,178 @@ def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
         raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {type(e).__name__}: "
                          f"{str(e).splitlines()[0][:200]}") from None
     return model, state.get("meta", {})
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# LTX-2 through diffusers (optional: pip install -r requirements-real.txt), behind the same interface
+# ----------------------------------------------------------------------------------------------------------------
+
+def _require(*packages: str) -> None:
+    """A clear error naming what is missing, instead of an ImportError deep inside a backend."""
+    import importlib.util
+    missing = [p for p in packages if importlib.util.find_spec(p) is None]
+    if missing:
+        raise ImportError(f"the real-model path needs {', '.join(missing)}: pip install -c <(echo torch==2.13.0) "
+                          f"-r requirements-real.txt")
+
+
+LTX2_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)"  # Table 3: video attention only
+
+
+class LTX2Video(nn.Module):
+    """LTX-2 image-to-video (diffusers' LTX2VideoTransformer3DModel + its video VAE + Gemma3 text encoder and
+    LTX-2's text connectors) as v_theta(x_t, t | c) in this repository's convention.
+
+    State: x (B, C, F_lat - 1, h, w), the VAE latents of the frames after the first. The first latent frame is the
+    encoded first frame, a clean condition: its tokens enter the transformer with timestep 0 (how diffusers' LTX-2
+    image-to-video pipeline conditions). Time: our t (0 noise, 1 data) is diffusers' sigma = 1 - t, scaled by the
+    transformer's timestep_scale_multiplier; LTX-2 predicts d x / d sigma = noise - data, so v_ours = -output.
+    This is the only place the other convention appears. The transformer requires an audio stream: a video-only
+    caller feeds one zero audio token. The text encoder and the VAE are frozen and run without gradients."""
+
+    backend = "ltx2"
+
+    def __init__(self, transformer, vae, text_encoder, tokenizer, connectors, frames: int, height: int, width: int,
+                 fps: float = 24.0, max_sequence_length: int = 128):
+        super().__init__()
+        self.transformer, self.vae, self.text_encoder, self.connectors = transformer, vae, text_encoder, connectors
+        self.tokenizer = tokenizer
+        self.frames, self.height, self.width, self.fps, self.max_len = frames, height, width, fps, max_sequence_length
+        for m in (vae, text_encoder, connectors):
+            m.requires_grad_(False).eval()
+        with torch.no_grad():   # the latent grid, read off the VAE itself (its compression ratios vary by config)
+            z = vae.encode(torch.zeros(1, 3, frames, height, width)).latent_dist.mode()
+        self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
+
+    # -- construction ------------------------------------------------------------------------------------------
+    @classmethod
+    def from_pretrained(cls, path: str, frames: int = 121, height: int = 384, width: int = 576, dtype=torch.bfloat16):
+        """Load the components from a local diffusers LTX-2 directory (e.g. a snapshot of Lightricks/LTX-2);
+        Table 3's training resolution and frame count are the defaults."""
+        _require("diffusers", "transformers", "peft")
+        if not os.path.isdir(path):
+            raise FileNotFoundError(f"LTX-2 weights not found at {path!r} (a local diffusers directory is needed; "
+                                    f"nothing is downloaded)")
+        from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
+        from diffusers.pipelines.ltx2 import LTX2TextConnectors
+        from transformers import AutoModelForCausalLM, AutoTokenizer
+        load = dict(torch_dtype=dtype)
+        return cls(LTX2VideoTransformer3DModel.from_pretrained(path, subfolder="transformer", **load),
+                   AutoencoderKLLTX2Video.from_pretrained(path, subfolder="vae", **load),
+                   AutoModelForCausalLM.from_pretrained(path, subfolder="text_encoder", **load),
+                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   LTX2TextConnectors.from_pretrained(path, subfolder="connectors", **load), frames, height, width)
+
+    @classmethod
+    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0):
+        """A random-weight LTX-2 of the real classes, small enough for CPU tests (configs after diffusers' own
+        tests; a word-level tokenizer built in-process over `words`, since nothing can be downloaded)."""
+        _require("diffusers", "transformers", "tokenizers")
+        from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
+        from diffusers.pipelines.ltx2 import LTX2TextConnectors
+        from tokenizers import Tokenizer as HFTokenizer
+        from tokenizers import models as tok_models
+        from tokenizers import pre_tokenizers
+        from transformers import Gemma3ForCausalLM, Gemma3TextConfig, PreTrainedTokenizerFast
+        specials = ["<pad>", "<eos>", "<bos>", "<unk>"]
+        vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
+        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
+        tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
+        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>",
+                                            bos_token="<bos>", unk_token="<unk>")
+        torch.manual_seed(seed)
+        text = Gemma3ForCausalLM(Gemma3TextConfig(vocab_size=len(vocab), hidden_size=32, intermediate_size=64,
+                                                  num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1,
+                                                  head_dim=16, max_position_embeddings=64, sliding_window=16))
+        connectors = LTX2TextConnectors(
+            caption_channels=32, text_proj_in_factor=3, video_connector_num_attention_heads=4,
+            video_connector_attention_head_dim=8, video_connector_num_layers=1,
+            video_connector_num_learnable_registers=None, audio_connector_num_attention_heads=4,
+            audio_connector_attention_head_dim=8, audio_connector_num_layers=1,
+            audio_connector_num_learnable_registers=None, connector_rope_base_seq_len=32, rope_theta=10000.0,
+            rope_double_precision=False, causal_temporal_positioning=False, rope_type="split")
+        transformer = LTX2VideoTransformer3DModel(
+            in_channels=4, out_channels=4, patch_size=1, patch_size_t=1, num_attention_heads=2, attention_head_dim=8,
+            cross_attention_dim=16, audio_in_channels=4, audio_out_channels=4, audio_num_attention_heads=2,
+            audio_attention_head_dim=4, audio_cross_attention_dim=8, num_layers=2, qk_norm="rms_norm_across_heads",
+            caption_channels=32, rope_double_precision=False, rope_type="split")
+        vae = AutoencoderKLLTX2Video(
+            in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8,), decoder_block_out_channels=(8,),
+            layers_per_block=(1,), decoder_layers_per_block=(1, 1), spatio_temporal_scaling=(True,),
+            decoder_spatio_temporal_scaling=(True,), decoder_inject_noise=(False, False), downsample_type=("spatial",),
+            upsample_residual=(False,), upsample_factor=(1,), timestep_conditioning=False, patch_size=1,
+            patch_size_t=1, encoder_causal=True, decoder_causal=False)
+        return cls(transformer, vae, text, tokenizer, connectors, frames, height, width, max_sequence_length=16)
+
+    # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
+    def add_lora(self, rank: int, alpha: float, target: str = LTX2_VIDEO_ATTENTION) -> list[str]:
+        """Table 3: LoRA on the video attention projections only; B = 0 at init (the Executor starts as the base)."""
+        from peft import LoraConfig
+        self.transformer.requires_grad_(False)
+        self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha, target_modules=target,
+                                                init_lora_weights=True))
+        return [n for n, _ in self.transformer.named_parameters() if "lora_" in n]
+
+    # -- the interface every backend provides -------------------------------------------------------------------
+    def latent_shape(self) -> tuple:
+        C, F_lat, h, w = self._latent
+        return (C, F_lat - 1, h, w)
+
+    def _normalise(self, z: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+        m = self.vae.latents_mean.view(1, -1, 1, 1, 1).to(z)
+        s = self.vae.latents_std.view(1, -1, 1, 1, 1).to(z)
+        k = self.vae.config.scaling_factor
+        return z * s / k + m if inverse else (z - m) * k / s
+
+    @torch.no_grad()
+    def condition(self, frame0, texts: list[str]) -> dict:
+        """c = (first frame (B, H, W, 3) uint8, prompts) -> {image latent (B, C, 1, h, w), the connectors' video and
+        audio text embeddings, their mask}. The text path mirrors diffusers' LTX-2 pipeline: Gemma hidden states of
+        every layer, stacked, left-padded, through the text connectors."""
+        dev = next(self.transformer.parameters()).device
+        self.tokenizer.padding_side = "left"
+        ids = self.tokenizer([t.strip() for t in texts], padding="max_length", max_length=self.max_len,
+                             truncation=True, add_special_tokens=True, return_tensors="pt").to(dev)
+        hs = self.text_encoder(input_ids=ids.input_ids, attention_mask=ids.attention_mask,
+                               output_hidden_states=True).hidden_states
+        emb = torch.stack(hs, dim=-1).flatten(2, 3)
+        video, audio, mask = self.connectors(emb.to(self.connectors.dtype), ids.attention_mask, padding_side="left")
+        return {"image_latent": self._image_latent(frame0), "text": video, "audio_text": audio, "mask": mask}
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
+        B = x_t.shape[0]
+        z = torch.cat([c["image_latent"].to(x_t), x_t], dim=2)                         # (B, C, F_lat, h, w)
+        _, C, F, h, w = z.shape
+        tokens = z.permute(0, 2, 3, 4, 1).reshape(B, F * h * w, C)                     # patch size 1
+        sigma = (1 - t).float() * self.transformer.config.timestep_scale_multiplier    # diffusers' convention
+        per_token = sigma[:, None].expand(B, F * h * w).clone()
+        per_token[:, :h * w] = 0                                                       # the clean first frame
+        dtype = next(self.transformer.parameters()).dtype
+        out = self.transformer(
+            hidden_states=tokens.to(dtype), audio_hidden_states=torch.zeros(B, 1, self.transformer.config.audio_in_channels,
+                                                                            device=x_t.device, dtype=dtype),
+            encoder_hidden_states=c["text"].to(dtype), audio_encoder_hidden_states=c["audio_text"].to(dtype),
+            timestep=per_token, audio_timestep=sigma, sigma=sigma, encoder_attention_mask=c["mask"],
+            audio_encoder_attention_mask=c["mask"], num_frames=F, height=h, width=w, fps=self.fps,
+            audio_num_frames=1, return_dict=False)[0]
+        v_sigma = out.float().reshape(B, F, h, w, C).permute(0, 4, 1, 2, 3)[:, :, 1:]   # drop the first frame
+        return -v_sigma                                                                 # d x / d t = -d x / d sigma
+
+    @torch.no_grad()
+    def decode(self, x_1: torch.Tensor, frame0) -> np.ndarray:
+        """Latents of the generated frames -> uint8 video (B, F, H, W, 3), decoded together with the first frame."""
+        z = self._normalise(torch.cat([self._image_latent(frame0), x_1.float()], dim=2), inverse=True)
+        video = self.vae.decode(z.to(self.vae.dtype), return_dict=False)[0].float()     # (B, 3, F', H, W)
+        video = ((video.clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 2, 3, 4, 1).cpu().numpy()
+        f0 = torch.as_tensor(np.asarray(frame0)).permute(0, 3, 1, 2).float()
+        f0 = F_.interpolate(f0, size=(self.height, self.width), mode="nearest").permute(0, 2, 3, 1)
+        video[:, 0] = f0.round().byte().numpy()      # frame 0 is the given observation, as in the toy's decode
+        return video
+
+    @torch.no_grad()
+    def _image_latent(self, frame0) -> torch.Tensor:
+        """First frames (B, H, W, 3) uint8 -> normalised VAE latents (B, C, 1, h, w) at the model's resolution."""
+        dev = next(self.transformer.parameters()).device
+        img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)     # (B, 3, H, W)
+        img = F_.interpolate(img, size=(self.height, self.width), mode="bilinear", align_corners=False)
+        return self._normalise(self.vae.encode(img[:, :, None].to(dev, self.vae.dtype)).latent_dist.mode().float())

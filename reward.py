@@ -70,11 +70,15 @@ class Reading:
 
 
 def read_video(video) -> Reading | None:
-    """(F, H, W, 3) uint8 or float in [0, 255] -> Reading, or None if the array is malformed.
+    """(F, H, W, 3) uint8 or float in [0, 255] -> Reading, or None if the array is malformed. A video at an integer
+    multiple of the world's 16x16 (the toy world through a real backend, e.g. LTX-2 at 32x32) is read block-averaged.
     A Reading passes through, so judge_all reads a video once for its three judges."""
     if isinstance(video, Reading):
         return video
     v = np.asarray(video)
+    if v.ndim == 4 and v.shape[3] == 3 and v.shape[1:3] != (H, W) and v.shape[1] % H == 0 and v.shape[2] % W == 0:
+        # the toy world rendered at a multiple of its size (a real backend's resolution): block-average it down
+        v = v.astype(np.float32).reshape(v.shape[0], H, v.shape[1] // H, W, v.shape[2] // W, 3).mean((2, 4))
     if v.ndim != 4 or v.shape[1:] != (H, W, 3) or v.shape[0] < 2 or not np.isfinite(v).all():
         return None
     v = np.clip(v.astype(np.float32), 0, 255)

@@ -109,6 +109,12 @@ class Args:
     """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
     puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
     clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
+    model: str = "toy"
+    """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
+    --model_path; pip install -r requirements-real.txt) | ltx2-tiny (random-weight LTX-2 of the real classes, for
+    checking the real path on a CPU)"""
+    model_path: str = ""
+    """--model ltx2: a local diffusers LTX-2 directory (transformer/, vae/, text_encoder/, tokenizer/, connectors/)"""
     # ---- rl (Alg. 1: the whole method) ----
     trainer: str = "awm"
     """policy-gradient objective L_RL (rl.py): awm (the paper's main setting) | flow-grpo | grpo | nft"""
@@ -186,7 +192,8 @@ def parse_args(argv=None) -> Args:
         p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
-                          ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off"))):
+                          ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
+                          ("model", ("toy", "ltx2", "ltx2-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
@@ -199,6 +206,10 @@ def parse_args(argv=None) -> Args:
         p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:
         p.error("--error_rate must lie in [0, 1]")
+    if args.model == "ltx2" and not args.model_path:
+        p.error("--model ltx2 needs --model_path (a local diffusers LTX-2 directory; nothing is downloaded)")
+    if args.model != "toy" and args.stage != "rl":
+        p.error(f"--model {args.model} is wired into the rl stage only")
     if args.eval_n > 200:
         p.error("--eval_n must be at most 200 (the bench size)")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -424,7 +435,7 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0)
     exe = models.generate(model, frame0, [p.task.text for p in pairs], args.sample_steps, seed=0)
-    sep = np.full((n, world.F, world.H, 2, 3), 255, np.uint8)
+    sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
     grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(world.F)]
     imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
@@ -712,6 +723,15 @@ def load_state(path: str, args: Args) -> dict:
     return state
 
 
+def load_base(args: Args):
+    """The base video model named by --model (the Executor and, adapters off, the Demonstrator)."""
+    if args.model == "toy":
+        return models.load_checkpoint(args.init or None)[0]
+    if args.model == "ltx2-tiny":
+        return models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    return models.LTX2Video.from_pretrained(args.model_path)
+
+
 def rl_stage(args: Args) -> dict:
     """Alg. 1 from the shipped base: every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
     (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
@@ -727,7 +747,7 @@ def rl_stage(args: Args) -> dict:
     state_path = os.path.join(args.run_dir, "state.pt")
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
-    model, _ = models.load_checkpoint(args.init or None)     # a bad checkpoint stops here, before anything is written
+    model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
     pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
@@ -816,8 +836,12 @@ def rl_stage(args: Args) -> dict:
         return {}
     logf.close()
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
-    merged = models.merge_lora(model)            # LoRA folded in: the base's network and cost, loadable by bench.py
-    models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+    if model.backend == "toy":   # LoRA folded in: the base's network and cost, loadable by bench.py
+        merged = models.merge_lora(model)
+        models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+    else:                        # a real model: the LoRA weights alone (the base stays where --model_path says)
+        merged = model
+        models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
     final = evaluate_executor(merged, args)
     rows = {**fixed, f"WMSD ({args.trainer}, T)": {k: final[k] for k in keys}}
     if demo_net is not None:

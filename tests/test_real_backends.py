@@ -1,0 +1,111 @@
+"""The LTX-2 backend (diffusers + peft) on a tiny random-weight model of the real classes: the interface, the time
+convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA files, and one WMSD
+step through train.py. Skipped where the optional packages are absent (CI installs them)."""
+import re
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("diffusers")
+pytest.importorskip("peft")
+
+import distill  # noqa: E402
+import models  # noqa: E402
+import rl  # noqa: E402
+import world  # noqa: E402
+from conftest import run  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def ltx():
+    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
+    pairs = world.make_pairs(2, seed=0, error_rate=0.0)
+    f0 = np.stack([p.frame0 for p in pairs])
+    return m, f0, m.condition(f0, [p.task.text for p in pairs]), m.condition(f0, [p.d_oracle for p in pairs])
+
+
+def test_velocity_is_converted_once_at_the_boundary(ltx):
+    m, f0, c, _ = ltx
+    x = torch.randn(2, *m.latent_shape())
+    t = torch.tensor([0.25, 0.75])
+    with torch.no_grad():
+        v = m(x, t, c)
+        # the transformer called directly, in diffusers' convention: sigma = 1 - t, first-frame tokens at 0
+        z = torch.cat([c["image_latent"], x], dim=2)
+        B, C, F, h, w = z.shape
+        sig = (1 - t) * m.transformer.config.timestep_scale_multiplier
+        ts = sig[:, None].repeat(1, F * h * w)
+        ts[:, :h * w] = 0
+        out = m.transformer(hidden_states=z.permute(0, 2, 3, 4, 1).reshape(B, -1, C),
+                            audio_hidden_states=torch.zeros(B, 1, 4), encoder_hidden_states=c["text"],
+                            audio_encoder_hidden_states=c["audio_text"], timestep=ts, audio_timestep=sig, sigma=sig,
+                            encoder_attention_mask=c["mask"], audio_encoder_attention_mask=c["mask"], num_frames=F,
+                            height=h, width=w, fps=m.fps, audio_num_frames=1, return_dict=False)[0]
+    direct = out.reshape(B, F, h, w, C).permute(0, 4, 1, 2, 3)[:, :, 1:]
+    assert v.shape == x.shape == (2, *m.latent_shape())
+    assert torch.allclose(v, -direct, atol=1e-6)          # d x / d t = - d x / d sigma
+    video = m.decode(x, f0)
+    assert video.dtype == np.uint8 and video.shape[2:] == (m.height, m.width, 3)
+    assert np.array_equal(video[:, 0, ::2, ::2], f0)       # frame 0 is the given observation
+
+
+def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(ltx, tmp_path):
+    m, f0, c_E, c_D = ltx
+    x0 = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([0.3, 0.6])
+    with torch.no_grad():
+        base = m(x0, t, c_E)
+    names = models.add_lora(m, 4, 8.0)
+    assert names and all(re.fullmatch(r"transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)\.lora_[AB]\..*", n)
+                         for n in names)
+    with torch.no_grad():
+        assert torch.equal(m(x0, t, c_E), base)            # B = 0: the Executor starts as the base
+    params = models.lora_parameters(m)
+    assert all(p.requires_grad for p in params)
+    assert not any(p.requires_grad for n, p in m.named_parameters() if "lora_" not in n)
+    before = {n: p.clone() for n, p in m.named_parameters()}
+    # one WMSD update (AWM + anchor, Eq. 12) on Executor rollouts
+    xs, ts = distill.rollout(m, x0, c_E, 2)
+    loss = rl.final_loss(rl.awm(m, rl.Rollouts(xs, ts, c_E), torch.tensor([1.0, -1.0]), rl.RLConfig())[0],
+                         distill.anchor_loss(m, (xs, ts), c_E, c_D), 1.0)
+    loss.backward()
+    torch.optim.Adam(params, lr=1e-2).step()
+    changed = [n for n, p in m.named_parameters() if not torch.equal(p, before[n])]
+    assert changed and all("lora_" in n for n in changed)
+    with torch.no_grad():
+        with models.adapters_disabled(m):
+            assert torch.equal(m(x0, t, c_E), base)        # the Demonstrator is untouched
+        assert not torch.allclose(m(x0, t, c_E), base)     # the Executor moved
+    # LoRA files: only the adapters, round trip, clear errors
+    path = tmp_path / "lora.pt"
+    models.save_lora(m, str(path), {"note": "x"})
+    saved = torch.load(path, weights_only=True)["lora"]
+    assert set(saved) == {k for k in m.state_dict() if "lora_" in k}
+    with torch.no_grad():
+        for p in params:
+            p.zero_()
+    assert models.load_lora(m, str(path)) == {"note": "x"}
+    assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
+    (tmp_path / "bad.pt").write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="corrupt"):
+        models.load_lora(m, str(tmp_path / "bad.pt"))
+
+
+def test_missing_packages_and_weights_give_clear_errors(tmp_path):
+    with pytest.raises(ImportError, match="no_such_package"):
+        models._require("no_such_package")
+    r = run("train.py", "--model", "ltx2")
+    assert r.returncode == 2 and "--model ltx2 needs --model_path" in r.stderr
+    r = run("train.py", "--model", "ltx2", "--model_path", str(tmp_path / "nowhere"), "--run_dir", str(tmp_path / "r"))
+    assert r.returncode == 2 and "LTX-2 weights not found" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_one_wmsd_run_on_tiny_ltx2(tmp_path):
+    """Alg. 1 with the real classes: rollouts, judges, r_distill, advantages, AWM + anchor, evaluation, LoRA file."""
+    r = run("train.py", "--model", "ltx2-tiny", "--steps", "1", "--group_size", "2", "--tasks_per_step", "1",
+            "--eval_every", "1", "--eval_n", "2", "--train_pairs", "2", "--sample_steps", "2", "--run_dir",
+            str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "| WMSD (awm, T)" in r.stdout
+    assert set(torch.load(tmp_path / "executor_awm.pt", weights_only=True)["lora"]) and (tmp_path / "state.pt").exists()
