@@ -57,15 +57,19 @@ def family_scores(pairs: list, judgments: list[dict]) -> dict:
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
-             steps: int = 10) -> tuple[dict, np.ndarray, list]:
-    """Generate and judge n bench videos. Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+             steps: int = 10, judge=None) -> tuple[dict, np.ndarray, list]:
+    """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
+    Figs. 15-17). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
     pairs = world.bench_pairs(error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
     videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed)
     seconds = time.time() - t0
     t1 = time.time()
-    judgments = [reward.judge_all(v, p.task.text) for v, p in zip(videos, pairs)]
+    if judge is None:
+        judgments = [reward.judge_all(v, p.task.text) for v, p in zip(videos, pairs)]
+    else:
+        judgments = judge.bench(videos, [p.task.text for p in pairs])
     res = score_table(judgments)
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
                seconds_per_video=seconds / max(n, 1), judge_seconds=time.time() - t1,

@@ -207,3 +207,183 @@ def judge_all(video, task_text: str) -> dict[str, Judgment]:
     """All three WorldTasks-Bench judgments of one video (App. A.7)."""
     r = read_video(video)
     return {k: (j(r, task_text) if r is not None else INVALID) for k, j in JUDGES.items()}
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a real VLM judge (optional: pip install -r requirements-real.txt): Qwen3-VL / Qwen3.5 through transformers
+# ----------------------------------------------------------------------------------------------------------------
+
+# The paper's prompts (App. A.2.2 Figs. 10-11 for training rewards, App. A.7 Figs. 15-17 for the bench), verbatim.
+TASK_REWARD_PROMPT = (
+    "Instruction: {instruction} Target agent: {agent_name} You are given generated video frames in correct temporal "
+    "order (frames 0..N-1). You are judging whether a target agent in this temporally ordered video successfully "
+    "completes an instruction. If the prompt refers to first-person view, camera perspective, or first-person "
+    "perspective, interpret that as referring to the camera movement and viewpoint. Analyze the video carefully and "
+    "reason strictly from visible evidence. Do not assume intent. Do not infer unseen events. Do not guess. "
+    "Evaluation Criteria 1. Correct Agent Attribution The required action must be performed by the target agent. If "
+    "another agent performs the action, the task is NOT successful. 2. Action Progress and Completion The target agent "
+    "must clearly complete the instructed action. The instruction must be fully satisfied by the final frame (or "
+    "earlier with a stable and persistent completed state). For first-person camera view: no other agent should be "
+    "performing the action. 3. Realism and Physical Consistency The outcome must be grounded in objects present in "
+    "earlier frames. If video quality is too poor to determine completion reliably, the task is NOT successful. "
+    "Decision Rule Answer Yes only if all of the following are true: The target agent performs the required action "
+    "The action is fully completed by the final frame The action is physically realistic and consistent If any "
+    "condition fails, answer No. Output Format Return exactly one word: Yes or No. Do not include any explanation or "
+    "additional text.")
+CONSISTENCY_REWARD_PROMPT = (
+    "You are given generated video frames in correct temporal order (frames 0..N-1). You are judging whether this "
+    "temporally ordered video is successful in terms of visual quality and temporal consistency. Analyze the video "
+    "carefully and reason strictly from visible evidence. Do not infer hidden causes. Do not guess missing frames. Do "
+    "not speculate beyond what is visible. Evaluation Criteria 1. Visual Quality Frames should be clear, coherent, and "
+    "stable. Severe blur, flicker, distortions, broken rendering, or major artifacts mean the video is NOT successful. "
+    "2. Temporal Consistency Motion and state changes should be smooth and physically coherent over time. No "
+    "teleportation, popping, identity instability, discontinuous motion, or implausible changes. 3. Reliability of "
+    "Evidence Judge only from visible evidence in the frames. If frames are too unclear to assess reliably, the video "
+    "is NOT successful. 4. Consistency with Initial Frame The video must remain consistent in style and quality with "
+    "the first frame. Decision Rule Answer Yes only if all of the following are true: Visual quality is acceptable "
+    "overall without severe artifacts Temporal consistency is acceptable without severe continuity failures Frames "
+    "are clear enough for reliable judgment If any condition fails, answer No. Output Format Return exactly one word: "
+    "Yes or No. Do not include any explanation or additional text.")
+BENCH_TASK_PROMPT = (
+    "Instruction: {eval_prompt} You are a strict video benchmark judge. Decide whether the video successfully solves "
+    "the instructed task by the end. Decision Rule Return 1 only if the requested action is clearly completed. Return "
+    "0 if the task is incomplete, incorrect, ambiguous, only partially done, or a different action occurs. Output "
+    "Format Reply with only 0 or 1.")
+BENCH_AGENT_PROMPT = (
+    "Full instruction: {eval_prompt} Expected acting agent: {agent_name} Expected task for that agent: "
+    "{agent_task_text} You are a strict video benchmark judge. Decide whether the correct agent is the one performing "
+    "the instructed action. Decision Rule Return 1 only if the expected agent clearly performs the task. Return 0 if "
+    "another agent performs it, the acting agent is unclear, or the expected agent is absent or incorrect. Output "
+    "Format Reply with only 0 or 1.")
+BENCH_CONSISTENCY_PROMPT = (
+    "You are a strict video benchmark judge. Decide whether the video shows physically realistic execution. Decision "
+    "Rule Return 1 only if motion, contact, timing, object interactions, and scene dynamics are physically plausible "
+    "and temporally coherent. Return 0 if there is teleportation, impossible motion, severe temporal inconsistency, "
+    "broken dynamics, identity drift, or obvious non-physical behavior. Output Format Reply with only 0 or 1.")
+
+
+def judgment_from_logits(logits: np.ndarray, yes_id: int, no_id: int) -> Judgment:
+    """Sec. 4.1 "Rewards": R(x) = log p_VLM('yes' | x) - log p_VLM('no' | x) from the next-token logits. The
+    greedy answer must be one of the two tokens; anything else is a malformed answer: no judgment (App. A.4)."""
+    logits = np.asarray(logits, np.float64)
+    if not np.isfinite(logits).all():
+        return Judgment(None, None, "non-finite logits")
+    if int(logits.argmax()) not in (yes_id, no_id):
+        return Judgment(None, None, "malformed answer")
+    logp = logits - (logits.max() + np.log(np.exp(logits - logits.max()).sum()))
+    score = float(logp[yes_id] - logp[no_id])
+    return Judgment(score > 0, score, "VLM")
+
+
+class VLMJudge:
+    """A Qwen3-VL / Qwen3.5 judge through transformers, batched, with the paper's prompts. Frames go in as images
+    (Qwen2VLImageProcessorPil: transformers' Qwen3VLProcessor needs torchvision, which this CPU machine cannot
+    load), each as <|vision_start|><|image_pad|>...<|vision_end|>, in one user turn before the prompt; the answer is
+    read off the logits of the first assistant token. Same method names and Judgment results as the toy judges."""
+
+    def __init__(self, model, tokenizer, image_processor, frames: int = 8, batch: int = 8):
+        self.model, self.tokenizer, self.image_processor = model.eval(), tokenizer, image_processor
+        self.frames, self.batch = frames, batch
+        vocab = tokenizer.get_vocab()
+        for tok in ("<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>",
+                    "Yes", "No", "0", "1"):
+            if tok not in vocab:
+                raise ValueError(f"VLM tokenizer has no single token {tok!r}")
+        self.ids = {k: vocab[k] for k in ("Yes", "No", "0", "1", "<|image_pad|>")}
+
+    @classmethod
+    def from_pretrained(cls, path: str, dtype=None):
+        import os
+
+        from transformers import AutoModelForImageTextToText, AutoTokenizer, Qwen2VLImageProcessorPil
+        if not os.path.isdir(path):
+            raise FileNotFoundError(f"VLM weights not found at {path!r} (a local directory is needed; nothing is "
+                                    f"downloaded)")
+        return cls(AutoModelForImageTextToText.from_pretrained(path, dtype=dtype or "auto"),
+                   AutoTokenizer.from_pretrained(path), Qwen2VLImageProcessorPil.from_pretrained(path))
+
+    @classmethod
+    def tiny(cls, words: list[str], seed: int = 0):
+        """A random-weight Qwen3-VL of the real classes for CPU tests (text hidden 32, 2 layers; vision depth 2)."""
+        import torch
+        from tokenizers import Tokenizer as HFTokenizer
+        from tokenizers import models as tok_models
+        from tokenizers import pre_tokenizers
+        from transformers import (PreTrainedTokenizerFast, Qwen2VLImageProcessorPil, Qwen3VLConfig,
+                                  Qwen3VLForConditionalGeneration)
+        specials = ["<pad>", "<unk>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
+                    "<|image_pad|>", "<|video_pad|>"]
+        prompt_words = " ".join([TASK_REWARD_PROMPT, CONSISTENCY_REWARD_PROMPT, BENCH_TASK_PROMPT, BENCH_AGENT_PROMPT,
+                                 BENCH_CONSISTENCY_PROMPT, " ".join(words), "user assistant Yes No 0 1"])
+        pre = pre_tokenizers.Whitespace()
+        toks = sorted({w for w, _ in pre.pre_tokenize_str(prompt_words)} | {"\n"})
+        vocab = {w: i for i, w in enumerate(specials + [w for w in toks if w not in specials])}
+        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
+        tok.pre_tokenizer = pre
+        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", unk_token="<unk>",
+                                            additional_special_tokens=specials[2:])
+        torch.manual_seed(seed)
+        cfg = Qwen3VLConfig(
+            text_config=dict(vocab_size=len(vocab), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                             num_attention_heads=2, num_key_value_heads=1, head_dim=16, max_position_embeddings=4096,
+                             rope_parameters={"rope_type": "default", "rope_theta": 10000.0, "mrope_section": [2, 1, 1],
+                                              "mrope_interleaved": True}),
+            vision_config=dict(depth=2, hidden_size=32, intermediate_size=64, num_heads=2, patch_size=16,
+                               out_hidden_size=32, spatial_merge_size=2, temporal_patch_size=2,
+                               num_position_embeddings=64, deepstack_visual_indexes=[1]),
+            image_token_id=vocab["<|image_pad|>"], video_token_id=vocab["<|video_pad|>"],
+            vision_start_token_id=vocab["<|vision_start|>"], vision_end_token_id=vocab["<|vision_end|>"])
+        proc = Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2, min_pixels=32 * 32,
+                                        max_pixels=64 * 64)
+        return cls(Qwen3VLForConditionalGeneration(cfg), tokenizer, proc, frames=4, batch=4)
+
+    def _frames(self, video) -> list:
+        from PIL import Image
+        v = np.asarray(video)
+        idx = np.linspace(0, len(v) - 1, min(self.frames, len(v))).round().astype(int)
+        return [Image.fromarray(np.clip(v[i], 0, 255).astype(np.uint8)) for i in idx]
+
+    def logits(self, videos, prompts: list[str]) -> np.ndarray:
+        """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches."""
+        import torch
+        out = []
+        for s in range(0, len(prompts), self.batch):
+            vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
+            frames = [self._frames(v) for v in vids]
+            img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
+            per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
+            texts, k = [], 0
+            for fs, p in zip(frames, ps):
+                vision = "".join("<|vision_start|>" + "<|image_pad|>" * per_image[k + j] + "<|vision_end|>"
+                                 for j in range(len(fs)))
+                k += len(fs)
+                texts.append(f"<|im_start|>user\n{vision}{p}<|im_end|>\n<|im_start|>assistant\n")
+            self.tokenizer.padding_side = "left"
+            enc = self.tokenizer(texts, return_tensors="pt", padding=True)
+            mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
+            with torch.no_grad():
+                o = self.model(input_ids=enc.input_ids, attention_mask=enc.attention_mask,
+                               pixel_values=img["pixel_values"].to(self.model.dtype),
+                               image_grid_thw=img["image_grid_thw"], mm_token_type_ids=mm)
+            out.append(o.logits[:, -1].float().cpu().numpy())
+        return np.concatenate(out)
+
+    def _judge(self, videos, prompts, yes: str, no: str) -> list[Judgment]:
+        return [judgment_from_logits(lg, self.ids[yes], self.ids[no]) for lg in self.logits(videos, prompts)]
+
+    # training rewards (Figs. 10, 11) and bench judgments (Figs. 15-17), batched over videos
+    def task_reward(self, videos, tasks: list[str]) -> list[Judgment]:
+        ps = [TASK_REWARD_PROMPT.format(instruction=t, agent_name=world.parse_task(t).agent) for t in tasks]
+        return self._judge(videos, ps, "Yes", "No")
+
+    def consistency_reward(self, videos) -> list[Judgment]:
+        return self._judge(videos, [CONSISTENCY_REWARD_PROMPT] * len(videos), "Yes", "No")
+
+    def bench(self, videos, tasks: list[str]) -> list[dict]:
+        parsed = [world.parse_task(t) for t in tasks]
+        task = self._judge(videos, [BENCH_TASK_PROMPT.format(eval_prompt=t) for t in tasks], "1", "0")
+        agent = self._judge(videos, [BENCH_AGENT_PROMPT.format(eval_prompt=t, agent_name=p.agent,
+                                                               agent_task_text=t.split(":", 1)[1].strip())
+                                     for t, p in zip(tasks, parsed)], "1", "0")
+        cons = self._judge(videos, [BENCH_CONSISTENCY_PROMPT] * len(videos), "1", "0")
+        return [{"task": a, "agent": b, "consistency": c} for a, b, c in zip(task, agent, cons)]

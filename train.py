@@ -115,6 +115,11 @@ class Args:
     checking the real path on a CPU)"""
     model_path: str = ""
     """--model ltx2: a local diffusers LTX-2 directory (transformer/, vae/, text_encoder/, tokenizer/, connectors/)"""
+    judge: str = "toy"
+    """the judge of rewards and bench: toy (reward.py's rule-based judges) | qwen-vl (a Qwen3-VL / Qwen3.5 from
+    --judge_path, the paper's prompts, log p(yes) - log p(no)) | qwen-vl-tiny (random-weight Qwen3-VL, for checks)"""
+    judge_path: str = ""
+    """--judge qwen-vl: a local transformers directory of the VLM"""
     # ---- rl (Alg. 1: the whole method) ----
     trainer: str = "awm"
     """policy-gradient objective L_RL (rl.py): awm (the paper's main setting) | flow-grpo | grpo | nft"""
@@ -193,7 +198,7 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
-                          ("model", ("toy", "ltx2", "ltx2-tiny"))):
+                          ("model", ("toy", "ltx2", "ltx2-tiny")), ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
@@ -208,8 +213,10 @@ def parse_args(argv=None) -> Args:
         p.error("--error_rate must lie in [0, 1]")
     if args.model == "ltx2" and not args.model_path:
         p.error("--model ltx2 needs --model_path (a local diffusers LTX-2 directory; nothing is downloaded)")
-    if args.model != "toy" and args.stage != "rl":
-        p.error(f"--model {args.model} is wired into the rl stage only")
+    if args.judge == "qwen-vl" and not args.judge_path:
+        p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
+        p.error("--model and --judge other than toy are wired into the rl stage only")
     if args.eval_n > 200:
         p.error("--eval_n must be at most 200 (the bench size)")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -314,7 +321,7 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     ctx = models.adapters_disabled(model) if demonstrator is True else contextlib.nullcontext()
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else "task", args.eval_n, seed=0,
-                                        error_rate=args.error_rate, steps=args.sample_steps)
+                                        error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE)
     return res
 
 
@@ -455,27 +462,54 @@ def rl_config(args: Args) -> rl.RLConfig:
                        nft_beta=args.nft_beta)
 
 
+JUDGE = None
+"""The VLM judge of this run (reward.VLMJudge), set by rl_stage from --judge; None = reward.py's toy judges."""
+
+
+def make_judge(args: Args):
+    if args.judge == "toy":
+        return None
+    if args.judge == "qwen-vl-tiny":
+        return reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    return reward.VLMJudge.from_pretrained(args.judge_path)
+
+
 def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
-    """Alg. 1 line 6: the judges' graded scores of each rollout as rewards. Where no judgment is possible -- a
-    malformed video, a missing agent, or a judge that raises -- the score is NaN: rl.advantages skips that rollout
-    and the log counts it (paper Tab. 4); a judge failure never stops the run.
-    Returns {"task", "consistency", "solved", "invalid", "judge_errors"}: (N,) tensors."""
-    out = {"task": [], "consistency": [], "solved": [], "judge_errors": []}
-    for v, t in zip(videos, tasks):
-        errors = 0
+    """Alg. 1 line 6: the judges' graded scores of each rollout as rewards (the toy judges' margins, or a VLM's
+    log p(yes) - log p(no)). Where no judgment is possible -- a malformed video or answer, a missing agent, or a judge
+    that raises -- the score is NaN: rl.advantages skips that rollout and the log counts it (paper Tab. 4); a judge
+    failure never stops the run. Returns {"task", "consistency", "solved", "invalid", "judge_errors"}: (N,)."""
+    n = len(tasks)
+    if JUDGE is not None:                       # a VLM, batched; a failing batch is counted and skipped
+        errors = [0] * n
         try:
-            r = reward.read_video(v)
-            jt = reward.judge_task(r, t) if r else reward.INVALID
-        except Exception:  # noqa: BLE001 -- a failing judge is counted and skipped, like a malformed VLM answer
-            r, jt, errors = None, reward.INVALID, errors + 1
-        try:
-            jc = reward.judge_consistency(r) if r else reward.INVALID
+            jts = JUDGE.task_reward(videos, tasks)
         except Exception:  # noqa: BLE001
-            jc, errors = reward.INVALID, errors + 1
-        out["task"].append(np.nan if jt.score is None else jt.score)
-        out["consistency"].append(np.nan if jc.score is None else jc.score)
-        out["solved"].append(np.nan if jt.yes is None else float(jt.yes and bool(jc.yes)))
-        out["judge_errors"].append(errors)
+            jts, errors = [reward.INVALID] * n, [e + 1 for e in errors]
+        try:
+            jcs = JUDGE.consistency_reward(videos)
+        except Exception:  # noqa: BLE001
+            jcs, errors = [reward.INVALID] * n, [e + 1 for e in errors]
+    else:
+        jts, jcs, errors = [], [], []
+        for v, t in zip(videos, tasks):
+            e = 0
+            try:
+                r = reward.read_video(v)
+                jt = reward.judge_task(r, t) if r else reward.INVALID
+            except Exception:  # noqa: BLE001 -- a failing judge is counted and skipped, like a malformed VLM answer
+                r, jt, e = None, reward.INVALID, e + 1
+            try:
+                jc = reward.judge_consistency(r) if r else reward.INVALID
+            except Exception:  # noqa: BLE001
+                jc, e = reward.INVALID, e + 1
+            jts.append(jt)
+            jcs.append(jc)
+            errors.append(e)
+    out = {"task": [np.nan if j.score is None else j.score for j in jts],
+           "consistency": [np.nan if j.score is None else j.score for j in jcs],
+           "solved": [np.nan if a.yes is None else float(a.yes and bool(b.yes)) for a, b in zip(jts, jcs)],
+           "judge_errors": errors}
     res = {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
     res["invalid"] = torch.isnan(res["task"]) | torch.isnan(res["consistency"])
     return res
@@ -747,7 +781,9 @@ def rl_stage(args: Args) -> dict:
     state_path = os.path.join(args.run_dir, "state.pt")
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
+    global JUDGE
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
+    JUDGE = make_judge(args)
     pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)

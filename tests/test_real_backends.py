@@ -1,6 +1,7 @@
 """The LTX-2 backend (diffusers + peft) on a tiny random-weight model of the real classes: the interface, the time
 convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA files, and one WMSD
 step through train.py. Skipped where the optional packages are absent (CI installs them)."""
+import json
 import re
 
 import numpy as np
@@ -12,6 +13,7 @@ pytest.importorskip("peft")
 
 import distill  # noqa: E402
 import models  # noqa: E402
+import reward  # noqa: E402
 import rl  # noqa: E402
 import world  # noqa: E402
 from conftest import run  # noqa: E402
@@ -101,11 +103,42 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     assert r.returncode == 2 and "LTX-2 weights not found" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_one_wmsd_run_on_tiny_ltx2(tmp_path):
-    """Alg. 1 with the real classes: rollouts, judges, r_distill, advantages, AWM + anchor, evaluation, LoRA file."""
-    r = run("train.py", "--model", "ltx2-tiny", "--steps", "1", "--group_size", "2", "--tasks_per_step", "1",
-            "--eval_every", "1", "--eval_n", "2", "--train_pairs", "2", "--sample_steps", "2", "--run_dir",
-            str(tmp_path))
+def test_one_wmsd_run_on_tiny_ltx2_with_a_tiny_vlm_judge(tmp_path):
+    """Alg. 1 with the real classes: LTX-2 rollouts, Qwen3-VL judgments (random weights answer with arbitrary tokens:
+    malformed, counted, skipped), r_distill, advantages, AWM + anchor, evaluation, the LoRA file."""
+    r = run("train.py", "--model", "ltx2-tiny", "--judge", "qwen-vl-tiny", "--steps", "1", "--group_size", "2",
+            "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--train_pairs", "2", "--sample_steps", "2",
+            "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr[-2000:]
     assert "| WMSD (awm, T)" in r.stdout
     assert set(torch.load(tmp_path / "executor_awm.pt", weights_only=True)["lora"]) and (tmp_path / "state.pt").exists()
+    step = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line][0]
+    assert step["invalid"] + sum(1 for a in step["A"] if a != 0) >= 1 and step["r_distill"] < 0
+
+
+def test_vlm_score_is_log_p_yes_minus_log_p_no():
+    logits = np.array([0.0, 3.0, 1.0, -2.0])               # ids: 1 = yes, 2 = no
+    j = reward.judgment_from_logits(logits, 1, 2)
+    lp = logits - np.log(np.exp(logits).sum())
+    assert j.yes is True and abs(j.score - (lp[1] - lp[2])) < 1e-9
+    j = reward.judgment_from_logits(np.array([0.0, 1.0, 3.0, -2.0]), 1, 2)
+    assert j.yes is False and j.score < 0
+    assert reward.judgment_from_logits(np.array([5.0, 1.0, 3.0, 0.0]), 1, 2).yes is None      # answered neither
+    assert reward.judgment_from_logits(np.array([np.nan, 1.0, 3.0, 0.0]), 1, 2).score is None
+
+
+def test_tiny_vlm_judge_batches_like_single_items():
+    judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
+    pairs = world.make_pairs(3, seed=1, error_rate=0.0)
+    videos = [np.repeat(p.frame0[None], 6, axis=0) for p in pairs]
+    tasks = [p.task.text for p in pairs]
+    prompts = [reward.TASK_REWARD_PROMPT.format(instruction=t, agent_name=world.parse_task(t).agent) for t in tasks]
+    assert len({len(p.split()) for p in prompts}) > 1                      # different lengths: left padding is used
+    batched = judge.logits(videos, prompts)
+    for i in range(3):
+        assert np.allclose(batched[i], judge.logits(videos[i:i + 1], prompts[i:i + 1])[0], atol=1e-4)
+    out = judge.task_reward(videos, tasks)
+    assert len(out) == 3 and all(isinstance(j, reward.Judgment) for j in out)
+    assert len(judge.bench(videos[:1], tasks[:1])[0]) == 3
+    r = run("train.py", "--judge", "qwen-vl")
+    assert r.returncode == 2 and "--judge qwen-vl needs --judge_path" in r.stderr
