@@ -368,22 +368,46 @@ class VLMJudge:
             out.append(o.logits[:, -1].float().cpu().numpy())
         return np.concatenate(out)
 
+    def yes_no(self, images, prompt: str) -> list:
+        """One yes/no question about each still image (the suitability filter, Fig. 12): True / False / None."""
+        return [j.yes for j in self._judge([np.asarray(im)[None] for im in images], [prompt] * len(images),
+                                           "Yes", "No")]
+
+    def generate(self, images, prompt: str, max_new_tokens: int = 512) -> list[str]:
+        """Greedy answers to a prompt about each still image (the task-solution generator, Sec. 4.1.1)."""
+        import torch
+        out = []
+        for im in images:
+            frames = self._frames(np.asarray(im)[None])
+            img = self.image_processor(images=frames, return_tensors="pt")
+            n = int(img["image_grid_thw"].prod(-1)[0]) // self.image_processor.merge_size ** 2
+            text = (f"<|im_start|>user\n<|vision_start|>{'<|image_pad|>' * n}<|vision_end|>{prompt}<|im_end|>\n"
+                    f"<|im_start|>assistant\n")
+            enc = self.tokenizer([text], return_tensors="pt")
+            mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()
+            with torch.no_grad():
+                ids = self.model.generate(input_ids=enc.input_ids, attention_mask=enc.attention_mask,
+                                          pixel_values=img["pixel_values"].to(self.model.dtype),
+                                          image_grid_thw=img["image_grid_thw"], mm_token_type_ids=mm,
+                                          max_new_tokens=max_new_tokens, do_sample=False)
+            out.append(self.tokenizer.decode(ids[0, enc.input_ids.shape[1]:], skip_special_tokens=True))
+        return out
+
     def _judge(self, videos, prompts, yes: str, no: str) -> list[Judgment]:
         return [judgment_from_logits(lg, self.ids[yes], self.ids[no]) for lg in self.logits(videos, prompts)]
 
     # training rewards (Figs. 10, 11) and bench judgments (Figs. 15-17), batched over videos
     def task_reward(self, videos, tasks: list[str]) -> list[Judgment]:
-        ps = [TASK_REWARD_PROMPT.format(instruction=t, agent_name=world.parse_task(t).agent) for t in tasks]
+        ps = [TASK_REWARD_PROMPT.format(instruction=t, agent_name=world.split_task(t)[0]) for t in tasks]
         return self._judge(videos, ps, "Yes", "No")
 
     def consistency_reward(self, videos) -> list[Judgment]:
         return self._judge(videos, [CONSISTENCY_REWARD_PROMPT] * len(videos), "Yes", "No")
 
     def bench(self, videos, tasks: list[str]) -> list[dict]:
-        parsed = [world.parse_task(t) for t in tasks]
+        parts = [world.split_task(t) for t in tasks]
         task = self._judge(videos, [BENCH_TASK_PROMPT.format(eval_prompt=t) for t in tasks], "1", "0")
-        agent = self._judge(videos, [BENCH_AGENT_PROMPT.format(eval_prompt=t, agent_name=p.agent,
-                                                               agent_task_text=t.split(":", 1)[1].strip())
-                                     for t, p in zip(tasks, parsed)], "1", "0")
+        agent = self._judge(videos, [BENCH_AGENT_PROMPT.format(eval_prompt=t, agent_name=a, agent_task_text=i)
+                                     for t, (a, i) in zip(tasks, parts)], "1", "0")
         cons = self._judge(videos, [BENCH_CONSISTENCY_PROMPT] * len(videos), "1", "0")
         return [{"task": a, "agent": b, "consistency": c} for a, b, c in zip(task, agent, cons)]

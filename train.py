@@ -115,6 +115,9 @@ class Args:
     checking the real path on a CPU)"""
     model_path: str = ""
     """--model ltx2: a local diffusers LTX-2 directory (transformer/, vae/, text_encoder/, tokenizer/, connectors/)"""
+    dataset: str = ""
+    """a WorldTasks JSONL file (image, task, description per line; world.make_worldtasks writes one) to train on
+    instead of the toy VLM's pairs"""
     judge: str = "toy"
     """the judge of rewards and bench: toy (reward.py's rule-based judges) | qwen-vl (a Qwen3-VL / Qwen3.5 from
     --judge_path, the paper's prompts, log p(yes) - log p(no)) | qwen-vl-tiny (random-weight Qwen3-VL, for checks)"""
@@ -766,6 +769,24 @@ def load_base(args: Args):
     return models.LTX2Video.from_pretrained(args.model_path)
 
 
+def load_pairs(args: Args, model) -> list:
+    """Alg. 1 lines 3-4's (image, T, D): the toy VLM's pairs, or a WorldTasks JSONL file (--dataset) with its
+    images resized to the model's resolution."""
+    if not args.dataset:
+        return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+    from types import SimpleNamespace
+
+    from PIL import Image
+    size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
+    rows = world.load_dataset(args.dataset)
+    if len(rows) < args.tasks_per_step:
+        raise ValueError(f"dataset {args.dataset!r} has {len(rows)} rows, fewer than --tasks_per_step "
+                         f"{args.tasks_per_step}")
+    return [SimpleNamespace(frame0=np.asarray(Image.open(r["image"]).convert("RGB").resize(size, Image.BILINEAR)),
+                            task=SimpleNamespace(text=r["task"]), d_vlm=r["description"])
+            for r in rows]
+
+
 def rl_stage(args: Args) -> dict:
     """Alg. 1 from the shipped base: every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
     (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
@@ -784,7 +805,7 @@ def rl_stage(args: Args) -> dict:
     global JUDGE
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
     JUDGE = make_judge(args)
-    pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+    pairs = load_pairs(args, model)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
     keys = ("task", "agent", "consistency", "avg", "seconds_per_video")

@@ -530,3 +530,154 @@ if __name__ == "__main__":
     for p in pairs:
         print(f"{p.task.family:12s} T = {p.task.text!r:45s} D = {p.d_oracle!r}")
     print("wrote world_examples.png")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# real images: the WorldTasks construction of Sec. 4.1.1 / App. A.6 for the real-model path (--model ltx2)
+# ----------------------------------------------------------------------------------------------------------------
+
+def split_task(text: str) -> tuple[str, str]:
+    """Any task in the paper's format "[agent]: instruction" -> (agent, instruction); ValueError otherwise.
+    (parse_task above additionally checks the toy world's vocabulary.)"""
+    m = _TASK_RE.match(text.strip())
+    if not m or not m["rest"].strip():
+        raise ValueError(f"task {text!r} is not of the form '[agent]: instruction'")
+    return m["agent"].strip(), m["rest"].strip()
+
+
+QUALITY_THRESHOLDS = {"min_laplacian_var": 12.0, "min_mean_luma": 20.0, "max_mean_luma": 235.0,
+                      "max_black_ratio": 0.85, "max_white_ratio": 0.85}   # App. A.6.1, the paper's main setup
+
+
+def image_quality(image: np.ndarray) -> dict:
+    """App. A.6.1's low-level statistics of an RGB image (H, W, 3) uint8: the variance of the Laplacian of the luma
+    (blur), the mean luma (too dark / too bright), and the fractions of near-black (< 16) and near-white (> 239)
+    pixels (nearly empty frames). Luma: ITU-R BT.601, Y = 0.299 R + 0.587 G + 0.114 B."""
+    y = np.asarray(image, np.float64)[..., :3] @ np.array([0.299, 0.587, 0.114])
+    lap = (y[:-2, 1:-1] + y[2:, 1:-1] + y[1:-1, :-2] + y[1:-1, 2:] - 4 * y[1:-1, 1:-1])   # 4-neighbour Laplacian
+    return {"laplacian_var": float(lap.var()), "mean_luma": float(y.mean()),
+            "black_ratio": float((y < 16).mean()), "white_ratio": float((y > 239).mean())}
+
+
+def quality_ok(image: np.ndarray, th: dict = QUALITY_THRESHOLDS) -> tuple[bool, str]:
+    """The image-quality filter of App. A.6.1: (kept?, reason if rejected)."""
+    q = image_quality(image)
+    for bad, why in ((q["laplacian_var"] < th["min_laplacian_var"], "blurry"),
+                     (q["mean_luma"] < th["min_mean_luma"], "underexposed"),
+                     (q["mean_luma"] > th["max_mean_luma"], "overexposed"),
+                     (q["black_ratio"] > th["max_black_ratio"], "mostly black"),
+                     (q["white_ratio"] > th["max_white_ratio"], "mostly white")):
+        if bad:
+            return False, why
+    return True, ""
+
+
+SUITABILITY_PROMPT = (  # Fig. 12, verbatim
+    "Look at this image carefully. Is this image suitable as a training sample for an agent-based video generation "
+    "model? Consider whether: The scene contains meaningful, diverse visual content (not blank, corrupted, or "
+    "trivially simple) The image quality is acceptable (not severely blurry, overexposed, underexposed, or distorted) "
+    "The image depicts a scene where an agent could plausibly perform tasks Output Format Answer with ONLY Yes or No. "
+    "Do not include any explanation or additional text.")
+
+TASK_SOLUTION_PROMPT = (  # ours: the paper shows outputs (Figs. 13-14) but not its generation prompt
+    "Look at this image, the first frame of a video. Propose {n} short tasks that an agent visible in the image (or "
+    "the camera, as [First-person view]) could carry out within a few seconds, and for each a detailed description "
+    "of the motion that solves it, as a video model would need it: who moves, which way, how far, what stays still. "
+    "Cover navigation (go to an object), positioning (stop beside or level with something) and perception (turn the "
+    "view to bring something into view). Answer exactly in this format, nothing else:\n"
+    "1. Task 1: [agent]: instruction\nDescription 1: description\n2. Task 2: [agent]: instruction\n"
+    "Description 2: description")
+
+_SOLUTION_RE = re.compile(r"Task\s*(\d+)\s*:\s*(\[[^\]]+\]\s*:.+?)\s*Description\s*\1\s*:\s*(.+?)(?=\s*\d+\.\s*Task\s*\d+\s*:|$)",
+                          re.S)
+
+
+def parse_task_solutions(text: str) -> list[tuple[str, str]]:
+    """The generator's answer -> [(T, D), ...] in the format of Figs. 13-14 ("1. Task 1: [agent]: ... Description 1:
+    ..."). Items whose task is not "[agent]: instruction" are dropped; an unparseable answer gives []."""
+    out = []
+    for _, task, desc in _SOLUTION_RE.findall(text):
+        task, desc = " ".join(task.split()), " ".join(desc.split())
+        try:
+            split_task(task)
+        except ValueError:
+            continue
+        out.append((task, desc))
+    return out
+
+
+FAMILY_WORDS = {"navigation": ("go to", "move to", "walk to", "drive to", "approach", "reach"),
+                "positioning": ("level with", "beside", "align", "stop", "next to", "edge"),
+                "perception": ("look", "centre", "center", "turn", "pan", "view")}
+
+
+def task_family(task: str) -> str:
+    """A coarse family label for Fig. 7's breakdown, by keywords of the instruction (first match; else "other")."""
+    instr = split_task(task)[1].lower()
+    return next((f for f, ws in FAMILY_WORDS.items() if any(w in instr for w in ws)), "other")
+
+
+def load_dataset(path: str) -> list[dict]:
+    """A WorldTasks JSONL file: one {"image", "task", "description", "agent", "family"} per line (image a path,
+    relative to the file). Raises ValueError "path line N: ..." on the first bad line, naming the problem."""
+    import json
+    import os
+    if not os.path.isfile(path):
+        raise ValueError(f"dataset {path!r} does not exist")
+    rows = []
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:
+                r = json.loads(line)
+                missing = [k for k in ("image", "task", "description") if not isinstance(r.get(k), str) or not r[k]]
+                if missing:
+                    raise ValueError(f"missing or empty {', '.join(missing)}")
+                split_task(r["task"])
+                r["image"] = os.path.join(os.path.dirname(os.path.abspath(path)), r["image"])
+                if not os.path.isfile(r["image"]):
+                    raise ValueError(f"image {r['image']!r} does not exist")
+            except (ValueError, TypeError, AttributeError) as e:
+                raise ValueError(f"{path} line {n}: {e}") from None
+            rows.append(r)
+    if not rows:
+        raise ValueError(f"dataset {path!r} has no rows")
+    return rows
+
+
+def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int = 8) -> dict:
+    """Sec. 4.1.1 / App. A.6 end to end: the image-quality filter, the VLM suitability filter (Fig. 12), and
+    `per_image` task-solution pairs per kept image from the VLM, written as JSONL (load_dataset's format).
+    `vlm` needs yes_no(images, prompt) -> list[bool | None] and generate(images, prompt) -> list[str]
+    (reward.VLMJudge has both). Returns counts of what was kept and why the rest was dropped."""
+    import json
+    import os
+
+    from PIL import Image
+    counts = {"images": len(image_paths), "kept_images": 0, "pairs": 0}
+    rows, images, kept = [], [], []
+    for p in image_paths:
+        img = np.asarray(Image.open(p).convert("RGB"))
+        ok, why = quality_ok(img)
+        if ok:
+            images.append(img)
+            kept.append(p)
+        else:
+            counts[why] = counts.get(why, 0) + 1
+    suitable = vlm.yes_no(images, SUITABILITY_PROMPT) if images else []
+    base = os.path.dirname(os.path.abspath(out_path))
+    answers = vlm.generate([im for im, s in zip(images, suitable) if s], TASK_SOLUTION_PROMPT.format(n=per_image))
+    counts["unsuitable"] = sum(1 for s in suitable if not s)
+    for p, ans in zip([p for p, s in zip(kept, suitable) if s], answers):
+        pairs = parse_task_solutions(ans)[:per_image]
+        counts["kept_images"] += bool(pairs)
+        for task, desc in pairs:
+            rows.append({"image": os.path.relpath(p, base), "task": task, "description": desc,
+                         "agent": split_task(task)[0], "family": task_family(task)})
+    tmp = f"{out_path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in rows)
+    os.replace(tmp, out_path)
+    counts["pairs"] = len(rows)
+    return counts

@@ -104,10 +104,12 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
 
 
 def test_one_wmsd_run_on_tiny_ltx2_with_a_tiny_vlm_judge(tmp_path):
-    """Alg. 1 with the real classes: LTX-2 rollouts, Qwen3-VL judgments (random weights answer with arbitrary tokens:
-    malformed, counted, skipped), r_distill, advantages, AWM + anchor, evaluation, the LoRA file."""
-    r = run("train.py", "--model", "ltx2-tiny", "--judge", "qwen-vl-tiny", "--steps", "1", "--group_size", "2",
-            "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--train_pairs", "2", "--sample_steps", "2",
+    """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 rollouts, Qwen3-VL judgments (random weights
+    answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages, AWM + anchor, evaluation,
+    the LoRA file."""
+    data = _toy_dataset(tmp_path / "data", 2)
+    r = run("train.py", "--model", "ltx2-tiny", "--judge", "qwen-vl-tiny", "--dataset", data, "--steps", "1",
+            "--group_size", "2", "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--sample_steps", "2",
             "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr[-2000:]
     assert "| WMSD (awm, T)" in r.stdout
@@ -142,3 +144,72 @@ def test_tiny_vlm_judge_batches_like_single_items():
     assert len(judge.bench(videos[:1], tasks[:1])[0]) == 3
     r = run("train.py", "--judge", "qwen-vl")
     assert r.returncode == 2 and "--judge qwen-vl needs --judge_path" in r.stderr
+
+
+def _toy_dataset(d, n):
+    """A WorldTasks-format JSONL over toy first frames saved as PNGs (what world.make_worldtasks writes)."""
+    from PIL import Image
+    d.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, p in enumerate(world.make_pairs(n, seed=5, error_rate=0.0)):
+        Image.fromarray(p.frame0).resize((32, 32), Image.NEAREST).save(d / f"{i}.png")
+        rows.append({"image": f"{i}.png", "task": p.task.text, "description": p.d_oracle,
+                     "agent": world.split_task(p.task.text)[0], "family": p.task.family})
+    (d / "data.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return str(d / "data.jsonl")
+
+
+def test_image_quality_filter_uses_the_papers_thresholds():
+    rng = np.random.default_rng(0)
+    checker = (np.indices((64, 64)).sum(0) % 2 * 200 + 30).astype(np.uint8)[..., None].repeat(3, -1)
+    assert world.quality_ok(checker) == (True, "")
+    assert world.quality_ok(np.full((64, 64, 3), 128, np.uint8)) == (False, "blurry")        # Laplacian variance 0
+    noisy_dark = rng.integers(0, 30, (64, 64, 3)).astype(np.uint8)
+    assert world.quality_ok(noisy_dark)[1] in ("underexposed", "mostly black")
+    noisy_bright = rng.integers(235, 256, (64, 64, 3)).astype(np.uint8)
+    assert world.quality_ok(noisy_bright)[1] in ("overexposed", "mostly white")
+    q = world.image_quality(checker)
+    assert q["black_ratio"] == 0 and abs(q["mean_luma"] - 130) < 1e-6
+
+
+def test_task_solution_parsing_and_the_dataset_file(tmp_path):
+    answer = ("1. Task 1: [Driver in racing suit]: Press the red button on the steering wheel.\n"
+              "Description 1: The driver's right hand moves slightly forward and presses the red button.\n"
+              "2. Task 2: no brackets here\nDescription 2: dropped\n"
+              "3. Task 3: [First-person view]: Align the bumper with the curb. Description 3: The car drifts left.")
+    pairs = world.parse_task_solutions(answer)
+    assert [t for t, _ in pairs] == ["[Driver in racing suit]: Press the red button on the steering wheel.",
+                                     "[First-person view]: Align the bumper with the curb."]
+    assert pairs[1][1] == "The car drifts left."
+
+    class FakeVLM:      # keeps the first image, answers with the text above
+        def yes_no(self, images, prompt):
+            assert prompt == world.SUITABILITY_PROMPT
+            return [i == 0 for i in range(len(images))]
+
+        def generate(self, images, prompt):
+            return [answer] * len(images)
+
+    from PIL import Image
+    checker = (np.indices((64, 64)).sum(0) % 2 * 200 + 30).astype(np.uint8)[..., None].repeat(3, -1)
+    paths = []
+    for i, img in enumerate([checker, checker, np.zeros((64, 64, 3), np.uint8)]):
+        Image.fromarray(img).save(tmp_path / f"{i}.png")
+        paths.append(str(tmp_path / f"{i}.png"))
+    counts = world.make_worldtasks(paths, FakeVLM(), str(tmp_path / "wt.jsonl"), per_image=8)
+    assert counts["pairs"] == 2 and counts["kept_images"] == 1 and counts["unsuitable"] == 1
+    assert counts.get("underexposed", 0) + counts.get("blurry", 0) == 1
+    rows = world.load_dataset(str(tmp_path / "wt.jsonl"))
+    assert rows[0]["agent"] == "Driver in racing suit" and rows[1]["family"] == "positioning"
+    # a bad line: one clear error naming the file and line, from the loader and from train.py
+    lines = (tmp_path / "wt.jsonl").read_text().splitlines()
+    (tmp_path / "bad.jsonl").write_text(lines[0] + "\n" + '{"image": "0.png", "task": "press it"}' + "\n")
+    with pytest.raises(ValueError, match=r"bad.jsonl line 2: missing or empty description"):
+        world.load_dataset(str(tmp_path / "bad.jsonl"))
+    r = run("train.py", "--model", "ltx2-tiny", "--dataset", str(tmp_path / "bad.jsonl"), "--run_dir",
+            str(tmp_path / "never"))
+    assert r.returncode == 2 and "line 2" in r.stderr and not (tmp_path / "never").exists()
+    # the tiny VLM's own generate and yes/no run (random weights: arbitrary text)
+    judge = reward.VLMJudge.tiny(["press"])
+    assert isinstance(judge.generate([checker], "Propose tasks", max_new_tokens=3)[0], str)
+    assert len(judge.yes_no([checker, checker], world.SUITABILITY_PROMPT)) == 2
