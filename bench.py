@@ -100,6 +100,51 @@ def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> 
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
+def read_run(run_dir: str) -> dict:
+    """A train.py rl run: its evaluations (step, task, agent, consistency, avg) from rl.jsonl, and the fixed rows
+    (base given T, Demonstrator) from rl_summary.json when the run finished."""
+    import os
+    path = os.path.join(run_dir, "rl.jsonl")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
+    evals = [r for r in map(json.loads, open(path)) if r.get("eval")]
+    summ = os.path.join(run_dir, "rl_summary.json")
+    fixed = json.load(open(summ))["table"] if os.path.isfile(summ) else {}
+    return {"evals": evals, "fixed": fixed}
+
+
+def compare_runs(runs: dict, path: str | None = None) -> str:
+    """Curves of several rl runs (label -> run dir) on one figure -- task and consistency vs step, the
+    Demonstrator as a dashed line (the paper's Fig. 5 layout) -- and a markdown table of start, peak and end."""
+    data = {label: read_run(d) for label, d in runs.items()}
+    rows = ["| run | task @0 | task peak (step) | task @end | consistency @end | agent @end |", "|---|---|---|---|---|---|"]
+    for label, r in data.items():
+        ev = r["evals"]
+        peak = max(ev, key=lambda e: e["task"])
+        rows.append(f"| {label} | {ev[0]['task']:.3f} | {peak['task']:.3f} ({peak['step']}) | {ev[-1]['task']:.3f} | "
+                    f"{ev[-1]['consistency']:.3f} | {ev[-1]['agent']:.3f} |")
+    if path:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+        demo = next((r["fixed"].get("Base + VLM (Demonstrator, toy VLM's D)") for r in data.values()
+                     if r["fixed"]), None)
+        for ax, key in zip(axes, ("task", "consistency")):
+            for label, r in data.items():
+                ax.plot([e["step"] for e in r["evals"]], [e[key] for e in r["evals"]], marker="o", ms=3, label=label)
+            if demo:
+                ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+            ax.set_xlabel("step")
+            ax.set_ylabel(f"bench {key} (Executor given T)")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+    return "\n".join(rows)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
@@ -111,7 +156,17 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
+    p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR", default=None,
+                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png)")
     a = p.parse_args(argv)
+    if a.compare:
+        try:
+            runs = dict(item.split("=", 1) for item in a.compare)
+            print(compare_runs(runs, a.png))
+        except (ValueError, FileNotFoundError) as e:
+            print(f"error: --compare: {e} (give LABEL=RUN_DIR pairs of finished rl runs)", file=sys.stderr)
+            sys.exit(2)
+        return
     if not 1 <= a.n <= 200:
         p.error(f"--n must lie in 1..200, got {a.n}")
     if not 0 <= a.error_rate <= 1:

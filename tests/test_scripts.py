@@ -84,3 +84,20 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
     r = run("bench.py", "--checkpoint", str(tmp_path / "missing.pt"), "--n", "2")
     assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+def test_compare_runs_on_fake_runs(tmp_path):
+    import bench
+    for name, tasks in (("a", [0.1, 0.3, 0.2]), ("b", [0.1, 0.0, 0.05])):
+        d = tmp_path / name
+        d.mkdir()
+        lines = [{"eval": True, "step": 10 * i, "task": t, "agent": 0.5, "consistency": 0.9, "avg": 0.5}
+                 for i, t in enumerate(tasks)] + [{"step": 1, "loss": 0.1}]
+        (d / "rl.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    json.dump({"table": {"Base + VLM (Demonstrator, toy VLM's D)": {"task": 0.6, "consistency": 0.9}}},
+              open(tmp_path / "a" / "rl_summary.json", "w"))
+    table = bench.compare_runs({"A": str(tmp_path / "a"), "B": str(tmp_path / "b")}, str(tmp_path / "cmp.png"))
+    assert "| A | 0.100 | 0.300 (10) | 0.200 |" in table and "| B | 0.100 | 0.100 (0) | 0.050 |" in table
+    assert (tmp_path / "cmp.png").stat().st_size > 1000
+    r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
+    assert r.returncode == 2 and "no rl.jsonl" in r.stderr
