@@ -376,29 +376,28 @@ def make_model(backend: str = "toy", **config) -> nn.Module:
 
 def save_checkpoint(model: nn.Module, path: str, meta: dict | None = None) -> None:
     """Write {backend, config, state_dict, meta} atomically (temp file + rename): a crash never leaves half a file."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     state = {"backend": model.backend, "config": asdict(model.cfg),
              "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta or {}}
+    atomic_save(state, path)
+
+
+def atomic_save(obj, path: str) -> None:
+    """torch.save to a temp file, then rename over `path`: a crash or a kill never leaves half a file, and on
+    failure the previous file is untouched and no temp file is left."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     try:
-        torch.save(state, tmp)
+        torch.save(obj, tmp)
         os.replace(tmp, path)
-    finally:                      # on failure the previous file is untouched and no temp file is left
+    finally:
         if os.path.exists(tmp):
             os.remove(tmp)
 
 
 def save_lora(model: nn.Module, path: str, meta: dict | None = None) -> None:
     """Write only the LoRA weights (and meta), atomically: what a real backend's Executor adds to its base."""
-    state = {"lora": {k: v.detach().cpu() for k, v in model.state_dict().items() if "lora_" in k}, "meta": meta or {}}
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    atomic_save({"lora": {k: v.detach().cpu() for k, v in model.state_dict().items() if "lora_" in k},
+                 "meta": meta or {}}, path)
 
 
 def load_lora(model: nn.Module, path: str) -> dict:

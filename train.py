@@ -733,13 +733,7 @@ def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, e
              "demo_opt": demo_opt.state_dict() if demo_opt is not None else None,
              "rng_numpy": rng.bit_generator.state, "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
              "py_random": random.getstate(), "evals": evals, "fixed": fixed, "args": dataclasses.asdict(args)}
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:                      # interrupted or failed: the previous state.pt is untouched, no stray temp file
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    models.atomic_save(state, path)
 
 
 def load_state(path: str, args: Args) -> dict:
