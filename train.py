@@ -773,6 +773,13 @@ def load_pairs(args: Args, model) -> list:
     from PIL import Image
     size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
     rows = world.load_dataset(args.dataset)
+    if model.backend == "toy":   # the toy model knows the toy world's words and agents only: say which line does not
+        for r in rows:
+            try:
+                world.parse_task(r["task"])
+                model.tokenizer([r["task"], r["description"]])
+            except ValueError as e:
+                raise ValueError(f"{args.dataset} line {r['line']}: {e}") from None
     if len(rows) < args.tasks_per_step:
         raise ValueError(f"dataset {args.dataset!r} has {len(rows)} rows, fewer than --tasks_per_step "
                          f"{args.tasks_per_step}")

@@ -640,6 +640,7 @@ def load_dataset(path: str) -> list[dict]:
                     raise ValueError(f"image {r['image']!r} does not exist")
             except (ValueError, TypeError, AttributeError) as e:
                 raise ValueError(f"{path} line {n}: {e}") from None
+            r["line"] = n
             rows.append(r)
     if not rows:
         raise ValueError(f"dataset {path!r} has no rows")

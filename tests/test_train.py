@@ -144,6 +144,17 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
+    # a dataset whose prompt has an unknown agent, or an unknown word, for the toy model
+    from PIL import Image
+    import world
+    p = world.make_pairs(1, seed=0, error_rate=0.0)[0]
+    Image.fromarray(p.frame0).save(tmp_path / "f.png")
+    for task, desc, msg in (("[purple dragon]: move to the blue circle", p.d_oracle, "unknown agent 'purple dragon'"),
+                            (p.task.text, "red square teleports away", "unknown word")):
+        (tmp_path / "d.jsonl").write_text(json.dumps({"image": "f.png", "task": p.task.text, "description": p.d_oracle})
+                                          + "\n" + json.dumps({"image": "f.png", "task": task, "description": desc}) + "\n")
+        r = run("train.py", *TINY, "--init", tiny_ckpt, "--dataset", str(tmp_path / "d.jsonl"), "--run_dir", str(out))
+        assert r.returncode == 2 and "d.jsonl line 2" in r.stderr and msg in r.stderr and not out.exists(), r.stderr
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--group_size", "1"], "--group_size must be >= 2"),
                       (["--beta_d", "-1"], "--beta_d must be >= 0"), (["--sampler", "euler"], "--sampler: unknown"),
                       (["--adv_agg", "mean"], "--adv_agg: unknown")):
