@@ -295,6 +295,9 @@ class VLMJudge:
     def from_pretrained(cls, path: str, dtype=None):
         import os
 
+        import models
+        models._require("transformers")
+
         from transformers import AutoModelForImageTextToText, AutoTokenizer, Qwen2VLImageProcessorPil
         if not os.path.isdir(path):
             raise FileNotFoundError(f"VLM weights not found at {path!r} (a local directory is needed; nothing is "
@@ -306,6 +309,9 @@ class VLMJudge:
     def tiny(cls, words: list[str], seed: int = 0):
         """A random-weight Qwen3-VL of the real classes for CPU tests (text hidden 32, 2 layers; vision depth 2)."""
         import torch
+
+        import models
+        models._require("transformers", "tokenizers")
         from tokenizers import Tokenizer as HFTokenizer
         from tokenizers import models as tok_models
         from tokenizers import pre_tokenizers

@@ -136,6 +136,9 @@ def test_tiny_vlm_judge_batches_like_single_items():
     tasks = [p.task.text for p in pairs]
     prompts = [reward.TASK_REWARD_PROMPT.format(instruction=t, agent_name=world.parse_task(t).agent) for t in tasks]
     assert len({len(p.split()) for p in prompts}) > 1                      # different lengths: left padding is used
+    assert prompts[0].startswith(f"Instruction: {tasks[0]} Target agent: {world.split_task(tasks[0])[0]} You are")
+    assert reward.BENCH_AGENT_PROMPT.format(eval_prompt="[a b]: go", agent_name="a b", agent_task_text="go").startswith(
+        "Full instruction: [a b]: go Expected acting agent: a b Expected task for that agent: go")
     batched = judge.logits(videos, prompts)
     for i in range(3):
         assert np.allclose(batched[i], judge.logits(videos[i:i + 1], prompts[i:i + 1])[0], atol=1e-4)
