@@ -8,12 +8,15 @@
               LoRA, c_E = (I, T)), distill.py: --variant off (Eq. 3), on (Eq. 5 = the anchor of Eq. 11 on the
               Executor's own states), dmd (App. A.2.1). Several variants, comma-separated, run one after another
               from the same base, and are plotted together (the paper's Fig. 4 left).
+  rl       -- the whole method, Alg. 1 (the default stage): groups of Executor rollouts, the judges (reward.py),
+              r_distill (Eq. 9), group-relative advantages of the Eq. 10 reward, L_RL (rl.py: awm | flow-grpo |
+              grpo | nft) + beta_d L_anchor (Eq. 12). Alg. 2 with --alternate N. Runs under torchrun, resumes with
+              --resume, stops cleanly on non-finite values. --model ltx2 / --judge qwen-vl / --dataset for real models.
 
   python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
-  python train.py --toy                              # laptop preset: on-policy self-distillation from the base
+  python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
   python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
-
-RL from the judges (rl.py, Eqs. 10 and 12) is added by a later issue.
+  torchrun --nproc_per_node 2 train.py --toy --threads 1             # the same run on 2 processes
 """
 from __future__ import annotations
 
@@ -237,7 +240,7 @@ def _field_docs(cls) -> dict:
     body, docs = tree.body[0].body, {}
     for a, b in zip(body, body[1:]):
         if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant):
-            docs[a.target.id] = b.value.value
+            docs[a.target.id] = b.value.value.replace("%", "%%")   # argparse formats help strings with %
     return docs
 
 

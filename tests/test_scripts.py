@@ -63,6 +63,12 @@ def test_bench_on_the_shipped_base():
     assert json.loads(r.stdout.splitlines()[-1])["checkpoint"] == "shipped base"
 
 
+def test_help_lists_every_flag_with_its_doc():
+    r = run("train.py", "--help")
+    assert r.returncode == 0 and "--beta_d" in r.stdout and "Eq. 12" in r.stdout and "--resume" in r.stdout
+    assert run("bench.py", "--help").returncode == 0
+
+
 def test_bad_input_gives_one_clear_error(tmp_path):
     r = run("bench.py", "--condition", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
