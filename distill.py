@@ -63,8 +63,8 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
     `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard)."""
     S, B = xs.shape[0] - 1, xs.shape[1]
     off, total = shard or (0, B)
-    k = torch.randint(0, S, (total,), generator=generator)[off:off + B]
-    return xs[k, torch.arange(B)].detach(), ts[k]
+    k = torch.randint(0, S, (total,), generator=generator)[off:off + B].to(xs.device)
+    return xs[k, torch.arange(B, device=xs.device)].detach(), ts[k]
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -237,8 +237,9 @@ def _renoise(ro: Rollouts, n_t: int, generator=None):
         N = ro.x1.shape[0]
         off, total = ro.shard or (0, N)
         strata = (torch.arange(n_t)[:, None] + torch.rand(n_t, total, generator=generator)) / n_t    # (n_t, total)
-        t = (0.98 * strata)[:, off:off + N].reshape(-1)
+        t = (0.98 * strata)[:, off:off + N].reshape(-1).to(ro.x1.device)       # drawn on the CPU generator
         eps = torch.randn(n_t, total, *ro.x1.shape[1:], generator=generator)[:, off:off + N].flatten(0, 1)
+        eps = eps.to(ro.x1.device)
         x1 = ro.x1.repeat(n_t, *([1] * (ro.x1.dim() - 1)))
         ro.draws["renoise"] = (flow.interpolate(eps, x1, t), t, x1 - eps)
     return ro.draws["renoise"]

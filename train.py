@@ -525,7 +525,14 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
 
 def _dist_init() -> None:
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+
+
+def _comm_device() -> torch.device:
+    """Where collectives need their tensors: the GPU under NCCL, the CPU under gloo."""
+    return torch.device("cuda") if dist.is_initialized() and dist.get_backend() == "nccl" else torch.device("cpu")
 
 
 def _rank() -> int:
@@ -548,15 +555,16 @@ def _gather(x: torch.Tensor) -> torch.Tensor:
     """Concatenate every process's (n, ...) shard in rank order: the whole batch on every process."""
     if not dist.is_initialized():
         return x
-    parts = [torch.empty_like(x) for _ in range(_world())]
-    dist.all_gather(parts, x.contiguous())
-    return torch.cat(parts)
+    y = x.to(_comm_device()).contiguous()
+    parts = [torch.empty_like(y) for _ in range(_world())]
+    dist.all_gather(parts, y)
+    return torch.cat(parts).to(x.device)
 
 
 def _mean_over_processes(x: float) -> float:
     if not dist.is_initialized():
         return x
-    t = torch.tensor([x], dtype=torch.float64)
+    t = torch.tensor([x], dtype=torch.float64, device=_comm_device())
     dist.all_reduce(t)
     return float(t) / _world()
 
@@ -634,7 +642,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     x_0, noises = _draws(N, model.latent_shape(), args, gen, sde)
-    x_0, noises = x_0[rows], (None if noises is None else noises[:, rows])
+    dev = next(model.parameters()).device       # drawn on the CPU (the same numbers on any device), used on the model's
+    x_0, noises = x_0[rows].to(dev), (None if noises is None else noises[:, rows].to(dev))
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         traj, _ = _rollouts(teacher if teacher is not None else _Demonstrator(model), c_D, x_0, args, None)
@@ -656,7 +665,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "advantage", A_all)
-    A = A_all[rows]
+    A = A_all[rows].to(dev)
     t2 = time.time()
     # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
     for _ in range(args.inner_epochs):
@@ -704,14 +713,15 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     c_D = demo.condition(frame0, descs)
     sde = args.trainer in rl.NEEDS_SDE or args.sampler == "sde"
     x_0, noises = _draws(N, demo.latent_shape(), args, gen, sde)
-    ro, _ = _rollouts(demo, c_D, x_0[rows], args, None if noises is None else noises[:, rows])
+    dev = next(demo.parameters()).device
+    ro, _ = _rollouts(demo, c_D, x_0[rows].to(dev), args, None if noises is None else noises[:, rows].to(dev))
     ro.shard = (off, N)
     rewards = {k: _gather(v) for k, v in judge_rollouts(demo.decode(ro.x1, frame0), tasks).items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, torch.arange(N) // G, args.adv_agg,
                           args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
-    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[rows], cfg, gen)
+    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[rows].to(dev), cfg, gen)
     l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen, shard=(off, N))   # phi vs f_0, under c_D
     loss = rl.final_loss(l_rl, l_base, args.beta_phi)
     gnorm = _update(step, opt, params, loss, "Demonstrator")
@@ -763,7 +773,8 @@ def load_base(args: Args):
         return models.load_checkpoint(args.init or None)[0]
     if args.model == "ltx2-tiny":
         return models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
-    return models.LTX2Video.from_pretrained(args.model_path)
+    model = models.LTX2Video.from_pretrained(args.model_path)
+    return model.to("cuda") if torch.cuda.is_available() else model
 
 
 def load_pairs(args: Args, model) -> list:
