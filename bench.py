@@ -10,6 +10,7 @@ three scores; its successes/valid sum the per-video mean over videos with all th
 
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
+  python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
 """
 from __future__ import annotations
 
