@@ -72,7 +72,8 @@ def sample_ode(v_theta: VelocityField, x_0: torch.Tensor, steps: int, return_tra
 # ----------------------------------------------------------------------------------------------------------------
 
 def sde_sigma(t: torch.Tensor, noise_level: float, t_min: float) -> torch.Tensor:
-    """Flow-GRPO's diffusion coefficient in our convention: sigma_t = a sqrt((1 - t) / t), a = noise_level.
+    """App. A.9 (Flow-GRPO [40]): the SDE's diffusion coefficient sigma_t of dx = (...) dt + sigma_t dw, in our
+    convention sigma_t = a sqrt((1 - t) / t), a = noise_level.
     (Flow-GRPO writes sqrt(s / (1 - s)) with s = 1 - t its noise level.) It diverges at t = 0, where the state is
     pure noise, so t is clamped to t_min >= the sampler's first step (Flow-GRPO likewise uses its second sigma)."""
     t = t.clamp(min=t_min)
@@ -112,7 +113,8 @@ def sde_step(v: torch.Tensor, x: torch.Tensor, t: torch.Tensor, dt: float, noise
 
 def sample_sde(v_theta: VelocityField, x_0: torch.Tensor, steps: int, noise_level: float = 0.7,
                generator: torch.Generator | None = None, noises: torch.Tensor | None = None):
-    """Roll out the SDE of sde_step on the uniform grid from t = 0 to t = 1. Returns (xs (steps + 1, B, ...),
+    """App. A.9 (Flow-GRPO [40]): denoising as a multi-step MDP, a_k = x_{t_{k+1}} ~ pi_theta(. | s_k = (c, t_k, x_{t_k})).
+    Rolls out the SDE of sde_step on the uniform grid from t = 0 to t = 1. Returns (xs (steps + 1, B, ...),
     ts (steps + 1,), log_probs (B, steps)): every state and the log-probability of every transition
     x_{t_k} -> x_{t_{k+1}} under the policy that drew it (Flow-GRPO's old log-probs). noise_level = 0 would be the
     ODE, but the Gaussian has no density then; use sample_ode. Wrap in torch.no_grad() for rollouts.

@@ -349,6 +349,13 @@ class VLMJudge:
         idx = np.linspace(0, len(v) - 1, min(self.frames, len(v))).round().astype(int)
         return [Image.fromarray(np.clip(v[i], 0, 255).astype(np.uint8)) for i in idx]
 
+    @staticmethod
+    def _chat(image_tokens: list[int], prompt: str) -> str:
+        """One user turn -- each frame as <|vision_start|> + its image-pad tokens + <|vision_end|>, then the prompt --
+        and the opened assistant turn whose first token is the answer."""
+        vision = "".join("<|vision_start|>" + "<|image_pad|>" * n + "<|vision_end|>" for n in image_tokens)
+        return f"<|im_start|>user\n{vision}{prompt}<|im_end|>\n<|im_start|>assistant\n"
+
     def logits(self, videos, prompts: list[str]) -> np.ndarray:
         """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches."""
         import torch
@@ -360,10 +367,8 @@ class VLMJudge:
             per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
             texts, k = [], 0
             for fs, p in zip(frames, ps):
-                vision = "".join("<|vision_start|>" + "<|image_pad|>" * per_image[k + j] + "<|vision_end|>"
-                                 for j in range(len(fs)))
+                texts.append(self._chat(per_image[k:k + len(fs)], p))
                 k += len(fs)
-                texts.append(f"<|im_start|>user\n{vision}{p}<|im_end|>\n<|im_start|>assistant\n")
             self.tokenizer.padding_side = "left"
             enc = self.tokenizer(texts, return_tensors="pt", padding=True)
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
@@ -387,9 +392,7 @@ class VLMJudge:
             frames = self._frames(np.asarray(im)[None])
             img = self.image_processor(images=frames, return_tensors="pt")
             n = int(img["image_grid_thw"].prod(-1)[0]) // self.image_processor.merge_size ** 2
-            text = (f"<|im_start|>user\n<|vision_start|>{'<|image_pad|>' * n}<|vision_end|>{prompt}<|im_end|>\n"
-                    f"<|im_start|>assistant\n")
-            enc = self.tokenizer([text], return_tensors="pt")
+            enc = self.tokenizer([self._chat([n], prompt)], return_tensors="pt")
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()
             with torch.no_grad():
                 ids = self.model.generate(input_ids=enc.input_ids, attention_mask=enc.attention_mask,

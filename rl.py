@@ -193,7 +193,8 @@ def grpo(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
 
 def gaussian_kl(mu_p: torch.Tensor, mu_q: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-    """KL(N(mu_p, s^2 I) || N(mu_q, s^2 I)) = ||mu_p - mu_q||^2 / (2 s^2), mean over dimensions (matching the
+    """App. A.9 (Flow-GRPO's beta D_KL(pi_theta || pi_ref) per transition), in closed form:
+    KL(N(mu_p, s^2 I) || N(mu_q, s^2 I)) = ||mu_p - mu_q||^2 / (2 s^2), mean over dimensions (matching the
     log-prob reduction). mu: (B, ...), s: (B,) -> (B,). Zero iff the means agree."""
     return _sq(mu_p - mu_q) / (2 * s.pow(2))
 
@@ -302,7 +303,7 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
 
 def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
-    """DiffusionNFT [71] (online RL with the forward process). Each final sample gets an optimality probability
+    """Sec. 3's third approach to L_RL, DiffusionNFT [71] (online RL with the forward process). Each final sample gets an optimality probability
     r = 1/2 + 1/2 clip(A / A_max, -1, 1) (A_max = 5, the advantage clip). Around the old velocity v_old = sg(v_theta_old)
     two implicit policies are formed,
 

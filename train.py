@@ -30,6 +30,7 @@ import random
 import sys
 import time
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -621,11 +622,20 @@ def _mean(x: torch.Tensor) -> float:
     return float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")
 
 
-def _draws(n_total: int, latent: tuple, args: Args, gen, sde: bool):
-    """The step's sampling noise for the whole batch (every process draws the same and keeps its rows)."""
-    x_0 = torch.randn(n_total, *latent, generator=gen)
-    noises = torch.randn(args.sample_steps, n_total, *latent, generator=gen) if sde else None
-    return x_0, noises
+def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool) -> SimpleNamespace:
+    """Alg. 1 lines 3-5's batch: each (image, T, D) repeated group_size times, this process's rows of it, and the
+    step's sampling noise. The noise is drawn for the whole batch on the CPU generator (so every process, on any
+    device, draws the same numbers) and this process keeps its rows, moved to the network's device."""
+    G, N = args.group_size, len(tasks) * args.group_size
+    off, n = _shard(N)
+    rows, dev = slice(off, off + n), next(net.parameters()).device
+    x_0 = torch.randn(N, *net.latent_shape(), generator=gen)
+    noises = torch.randn(args.sample_steps, N, *net.latent_shape(), generator=gen) if sde else None
+    return SimpleNamespace(
+        N=N, n=n, rows=rows, shard=(off, N), groups=torch.arange(N) // G,
+        frame0=np.repeat(frame0, G, axis=0)[rows], tasks=[t for t in tasks for _ in range(G)][rows],
+        descs=[d for d in descs for _ in range(G)][rows],
+        x_0=x_0[rows].to(dev), noises=None if noises is None else noises[:, rows].to(dev))
 
 
 def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen,
@@ -633,25 +643,19 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     """One Executor iteration of Alg. 1 (Alg. 2 lines 18-25) on tasks_per_step (image, T, D), each repeated
     group_size times; split across processes under torchrun. `teacher`: a trained Demonstrator (Alg. 2); None =
     the base with adapters off."""
-    G, N = args.group_size, len(tasks) * args.group_size
-    groups = torch.arange(N) // G
-    off, n = _shard(N)
-    rows = slice(off, off + n)
-    frame0, tasks, descs = np.repeat(frame0, G, axis=0)[rows], [t for t in tasks for _ in range(G)][rows], \
-        [d for d in descs for _ in range(G)][rows]
-    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
-    x_0, noises = _draws(N, model.latent_shape(), args, gen, sde)
-    dev = next(model.parameters()).device       # drawn on the CPU (the same numbers on any device), used on the model's
-    x_0, noises = x_0[rows].to(dev), (None if noises is None else noises[:, rows].to(dev))
+    b = _group_batch(model, frame0, tasks, descs, args, gen, sde)
+    N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
+    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, b.descs)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
-        traj, _ = _rollouts(teacher if teacher is not None else _Demonstrator(model), c_D, x_0, args, None)
-        loss = distill.off_policy_loss(model, (traj.xs, traj.ts), c_E, c_D, gen, teacher, shard=(off, N))
+        traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
+                distill.rollout(model, b.x_0, c_D, args.sample_steps, demonstrator=True))
+        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, shard=b.shard)
         gnorm = _update(step, opt, params, loss, "off-policy")
         return {"loss": _mean_over_processes(loss.item()), "grad_norm": gnorm, "sample_s": time.time() - t0}
-    ro, vs = _rollouts(model, c_E, x_0, args, noises)
-    ro.shard = (off, N)
+    ro, vs = _rollouts(model, c_E, b.x_0, args, b.noises)
+    ro.shard = b.shard
     videos = model.decode(ro.x1, frame0)
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
@@ -665,12 +669,12 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "advantage", A_all)
-    A = A_all[rows].to(dev)
+    A = A_all[rows].to(b.x_0.device)
     t2 = time.time()
     # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
     for _ in range(args.inner_epochs):
         l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
-        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, shard=(off, N))
+        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, shard=b.shard)
                     if args.beta_d > 0 else None)
         loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
         gnorm = _update(step, opt, params, loss, "Executor")
@@ -685,44 +689,21 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
             **{k: _mean_over_processes(v) for k, v in info.items()}}
 
 
-class _Demonstrator(torch.nn.Module):
-    """The base with adapters off, as a network of its own (for sampling the fixed Demonstrator's trajectories)."""
-
-    def __init__(self, model):
-        super().__init__()
-        self.model = model
-
-    def latent_shape(self):
-        return self.model.latent_shape()
-
-    def forward(self, x, t, c):
-        with models.adapters_disabled(self.model):
-            return self.model(x, t, c)
-
-
 def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs,
                        gen) -> dict:
     """Alg. 2 lines 11-16: the Demonstrator phi (base + its own LoRA) rolls out under c_D, is judged on the task T,
     and is updated by L_RL(phi) + beta_phi L_base, where L_base is the anchor of Eq. 11 with the *base* f_0 (phi's
     adapters off) as the reference, on phi's own states, under c_D."""
-    G, N = args.group_size, len(tasks) * args.group_size
-    off, n = _shard(N)
-    rows = slice(off, off + n)
-    frame0, tasks, descs = np.repeat(frame0, G, axis=0)[rows], [t for t in tasks for _ in range(G)][rows], \
-        [d for d in descs for _ in range(G)][rows]
-    c_D = demo.condition(frame0, descs)
-    sde = args.trainer in rl.NEEDS_SDE or args.sampler == "sde"
-    x_0, noises = _draws(N, demo.latent_shape(), args, gen, sde)
-    dev = next(demo.parameters()).device
-    ro, _ = _rollouts(demo, c_D, x_0[rows].to(dev), args, None if noises is None else noises[:, rows].to(dev))
-    ro.shard = (off, N)
-    rewards = {k: _gather(v) for k, v in judge_rollouts(demo.decode(ro.x1, frame0), tasks).items()}
+    b = _group_batch(demo, frame0, tasks, descs, args, gen, args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
+    c_D = demo.condition(b.frame0, b.descs)
+    ro, _ = _rollouts(demo, c_D, b.x_0, args, b.noises)
+    ro.shard = b.shard
+    rewards = {k: _gather(v) for k, v in judge_rollouts(demo.decode(ro.x1, b.frame0), b.tasks).items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
-    A_all = rl.advantages({k: rewards[k] for k in weights}, weights, torch.arange(N) // G, args.adv_agg,
-                          args.adv_clip)
+    A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
-    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[rows].to(dev), cfg, gen)
-    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen, shard=(off, N))   # phi vs f_0, under c_D
+    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[b.rows].to(b.x_0.device), cfg, gen)
+    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen, shard=b.shard)   # phi vs f_0, under c_D
     loss = rl.final_loss(l_rl, l_base, args.beta_phi)
     gnorm = _update(step, opt, params, loss, "Demonstrator")
     return {"demo_round": True, "loss": _mean_over_processes(loss.item()), "grad_norm": gnorm,
@@ -782,8 +763,6 @@ def load_pairs(args: Args, model) -> list:
     images resized to the model's resolution."""
     if not args.dataset:
         return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
-    from types import SimpleNamespace
-
     from PIL import Image
     size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
     rows = world.load_dataset(args.dataset)

@@ -189,10 +189,7 @@ _TASK_RE = re.compile(r"^\[(?P<agent>[^\]]+)\]:\s*(?P<rest>.+)$")
 
 def parse_task(text: str) -> Task:
     """Parse "[agent]: instruction" back into a Task. Raises ValueError naming the problem for anything else."""
-    m = _TASK_RE.match(text.strip().lower())
-    if not m:
-        raise ValueError(f"task {text!r} is not of the form '[agent]: instruction'")
-    agent, rest = m["agent"].strip(), m["rest"].strip()
+    agent, rest = split_task(text.lower())
     names = {f"{c} {s}" for c in COLOURS for s in SHAPES}
     if agent != FIRST_PERSON and agent not in names:
         raise ValueError(f"unknown agent {agent!r} in task {text!r}; agents are '<colour> <shape>' with colour in "
