@@ -84,11 +84,14 @@ class Args:
     """steps between progress lines"""
     width: int = 32
     """U-Net channels at full resolution"""
+    evidence: int = 5
+    """toy base: add the log-likelihood of x_t under each DNA move, summed over this window, to the filter logits
+    (models.ToyConfig; 0 = off)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
     variant: str = "on"
-    """self-distillation objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1)"""
+    """objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1) | sft (the +SFT baseline, Sec. 4.4)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -261,9 +264,23 @@ def _eta(start: float, done: int, total: int) -> str:
 # stage: pretrain the base model
 # ================================================================================================================
 
+def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> torch.Tensor:
+    """The flow-matching loss (App. A.9) on captioned world videos, weighted (1 - t)^loss_power and x motion_weight
+    on pixels that differ from the first frame: pretraining's loss, and the SFT baseline's. Draws x_0 and t from
+    torch's global generator."""
+    x_1 = model.encode_video(videos)                       # (B, T, 3, H, W) data
+    c = model.condition(videos[:, 0], captions)
+    x_0 = torch.randn_like(x_1)                            # noise
+    t = torch.rand(len(videos))                            # t ~ U[0, 1]
+    moving = (x_1 - c["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05        # (B, T, 1, H, W)
+    w = (1 - t).clamp(min=model.cfg.min_one_minus_t).reshape(-1, 1, 1, 1, 1) ** args.loss_power \
+        * (1 + (args.motion_weight - 1) * moving.float())
+    return flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
+
+
 def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
-    model = models.make_model("toy", width=args.width)
+    model = models.make_model("toy", width=args.width, evidence=args.evidence)
     ema = copy.deepcopy(model).requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (
@@ -276,14 +293,7 @@ def pretrain(args: Args) -> dict:
     for step in range(1, steps + 1):
         videos, captions = world.pretraining_batch(rng, args.pretrain_batch, args.p_vague, args.p_empty,
                                                    args.p_goal, exclude)
-        x_1 = model.encode_video(videos)                       # (B, T, 3, H, W) data
-        c = model.condition(videos[:, 0], captions)
-        x_0 = torch.randn_like(x_1)                            # noise
-        t = torch.rand(len(videos))                            # t ~ U[0, 1]
-        moving = (x_1 - c["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05        # (B, T, 1, H, W)
-        w = (1 - t).clamp(min=model.cfg.min_one_minus_t).reshape(-1, 1, 1, 1, 1) ** args.loss_power \
-            * (1 + (args.motion_weight - 1) * moving.float())
-        loss = flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
+        loss = video_loss(model, videos, captions, args)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -313,7 +323,7 @@ def pretrain(args: Args) -> dict:
 # stage: self-distillation (Sec. 3, distill.py)
 # ================================================================================================================
 
-VARIANTS = ("off", "on", "dmd")
+VARIANTS = ("off", "on", "dmd", "sft")
 
 
 def _batch(pairs: list, idx) -> tuple:
@@ -370,6 +380,9 @@ def distill_variant(args: Args, variant: str, pairs: list, logf) -> tuple:
                                            c_E, c_D, gen)
         elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
             loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, c_D, gen)
+        elif variant == "sft":  # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
+            videos, labels = world.sft_batch(rng, args.batch, world.bench_scene_keys())
+            loss = video_loss(model, videos, labels, args)
         else:                   # App. A.2.1: generator through the Executor's sampler, then the fake score
             x = flow.sample_ode(lambda x, t: model(x, t, c_E), x_0, args.sample_steps)
             loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)

@@ -518,6 +518,39 @@ def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.1
     return np.stack(videos), captions
 
 
+def sft_task(scene: Scene, plan: Plan, rng: np.random.Generator) -> str:
+    """The SFT baseline's labeller (Sec. 4.4 "+SFT"): a short task in the "[agent]: instruction" format derived
+    automatically from a plain world video. If the video ends solving a task it did not solve at frame 0, one such
+    task at random; otherwise a trivial one naming the dominant direction ("[red square]: move right") -- the toy's
+    "walk forward". Still videos get none (None)."""
+    if plan.mover is None or plan.k == 0:
+        return None
+    pos = simulate(scene, plan)
+    agent = FIRST_PERSON if plan.mover == -1 else scene.names()[plan.mover]
+    done = [t for t in candidate_tasks(scene) if t.agent == agent
+            and _margins(scene, t, pos[-1]) >= 0 > _margins(scene, t, pos[0])]
+    if done:
+        return done[int(rng.integers(len(done)))].text
+    if abs(plan.vx) >= abs(plan.vy):
+        return f"[{agent}]: move {'right' if plan.vx > 0 else 'left'}"
+    return f"[{agent}]: move {'down' if plan.vy > 0 else 'up'}"
+
+
+def sft_batch(rng: np.random.Generator, batch: int, exclude: set | None = None):
+    """Plain world videos (random motions, as in pretraining) with sft_task's labels: (videos, tasks)."""
+    videos, tasks = [], []
+    while len(videos) < batch:
+        scene = random_scene(rng)
+        if exclude and scene_key(scene) in exclude:
+            continue
+        plan = random_plan(scene, rng)
+        task = sft_task(scene, plan, rng)
+        if task is not None:
+            videos.append(render(scene, simulate(scene, plan)))
+            tasks.append(task)
+    return np.stack(videos), tasks
+
+
 if __name__ == "__main__":
     from PIL import Image
     pairs = bench_pairs(0.0)[:6]

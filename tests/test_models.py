@@ -110,3 +110,25 @@ def test_generate_is_deterministic_and_independent_of_batching(small):
     assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
     assert np.array_equal(a, b)
     assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated
+
+
+def test_evidence_lets_x_t_choose_the_move_the_text_leaves_open():
+    """With ToyConfig.evidence, an untrained model (its own logits favour "stay") reads the move out of x_t: late in
+    the flow, x1_hat follows the sprite that x_t shows moving; without evidence it predicts the still video."""
+    scene = world.Scene([world.Sprite("red", "square", 4, 8), world.Sprite("blue", "circle", 12, 3)])
+    video = world.render(scene, world.simulate(scene, world.Plan(0, 1, 0, 5)))[None]    # red moves right 5 px
+    still = world.render(scene, world.simulate(scene, world.Plan(None)))[None]
+    torch.manual_seed(0)
+    for evidence in (5, 0):
+        m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, evidence=evidence)
+        c = m.condition(video[:, 0], [""])
+        x_1, t = m.encode_video(video), torch.tensor([0.8])
+        x_t = (1 - t) * torch.randn(x_1.shape, generator=torch.Generator().manual_seed(0)) + t * x_1
+        with torch.no_grad():
+            x1_hat = x_t + (1 - t) * m(x_t, t, c)          # the model's x_1 prediction
+        to_moving = (x1_hat - x_1).abs().max().item()
+        to_still = (x1_hat - m.encode_video(still)).abs().max().item()
+        if evidence:
+            assert to_moving < 0.05 and to_still > 0.5, (to_moving, to_still)
+        else:   # the centre tap's prior keeps ~98% per frame: a still video, slightly blurred
+            assert to_still < 0.15 and to_moving > 0.5, (to_moving, to_still)

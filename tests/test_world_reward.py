@@ -29,6 +29,19 @@ def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
     assert videos.shape == (64, world.F, world.H, world.W, 3)
 
 
+def test_sft_labels_are_short_tasks_the_video_solves_or_trivial_moves():
+    """The +SFT baseline's labeller: a derived task must be one the judge says the labelled video solves."""
+    rng = np.random.default_rng(0)
+    videos, tasks = world.sft_batch(rng, 120, world.bench_scene_keys())
+    trivial = [t for t in tasks if t.split(": ")[1] in ("move left", "move right", "move up", "move down")]
+    assert 0.3 < len(trivial) / len(tasks) < 0.9          # many are trivial, as Sec. 4.4 found
+    for v, t in zip(videos, tasks):
+        if t not in trivial:
+            assert reward.judge_task(v, t).yes, t
+    assert world.sft_task(Scene([Sprite("red", "square", 4, 4), Sprite("blue", "circle", 12, 4)]), Plan(None), rng) \
+        is None
+
+
 def test_task_format_and_parse_round_trip(bench):
     for p in bench:
         assert p.task.text.startswith("[") and "]: " in p.task.text
