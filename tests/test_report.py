@@ -1,0 +1,78 @@
+"""bench.py's reproduction report: its arithmetic over seeds, its denominators, and a --quick run end to end."""
+import json
+import os
+
+import pytest
+
+import bench
+import reward
+from conftest import run
+
+J = reward.Judgment
+
+
+def _j(task, agent, cons):
+    mk = lambda y: reward.INVALID if y is None else J(y, 1.0 if y else -1.0)  # noqa: E731
+    return {"task": mk(task), "agent": mk(agent), "consistency": mk(cons)}
+
+
+def test_denominators_count_discarded_judgments():
+    seed0 = bench.score_table([_j(True, True, True), _j(None, True, False), _j(False, None, None)])
+    assert seed0["valid"] == {"task": 2, "agent": 2, "consistency": 2, "avg": 1}
+    assert seed0["failures"] == {"task": 1, "agent": 1, "consistency": 1, "avg": 2}
+    assert seed0["task"] == 0.5 and seed0["agent"] == 1.0 and seed0["consistency"] == 0.5
+    seed1 = bench.score_table([_j(True, False, True), _j(True, True, True)])
+    # over seeds: successes and valid judgments add up; the failure rate is over all 5 videos
+    assert bench.table4_cell([seed0, seed1], "task") == "0.750 (3/4; 20.0%)"
+    assert bench.table4_cell([seed0, seed1], "agent") == "0.750 (3/4; 20.0%)"
+    assert bench.table4_cell([seed0, seed1], "avg") == "0.889 (2.7/3; 40.0%)"
+
+
+def test_mean_and_spread_over_seeds():
+    assert bench.mean_sd([1, 2, 3]) == (2.0, 1.0)
+    assert bench.mean_sd([0.5]) == (0.5, 0.0)
+    assert bench.fmt([0.1, 0.3]) == "0.200 ± 0.141"
+
+
+def test_subgroup_scores_for_fig7():
+    import world
+    pairs = world.bench_pairs(0.3)[:40]
+    judgments = [_j(i % 2 == 0, i % 3 == 0, True) for i in range(40)]
+    fam, types = bench.family_scores(pairs, judgments), bench.agent_type_scores(pairs, judgments)
+    assert sum(v for _, v in fam.values()) == 40 and set(fam) <= set(world.FAMILIES)
+    assert set(types) <= {"sprite", "first-person view"} and sum(v for _, v in types.values()) == 40
+    fpv = [p for p in pairs if p.task.agent == world.FIRST_PERSON]
+    assert types.get("first-person view", [0, 0])[1] == len(fpv)
+    assert fam["perception"][1] == len(fpv)   # perception tasks are the first-person ones
+
+
+def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
+    out = tmp_path / "report"
+    r = run("bench.py", "--report", str(out), "--quick", "--checkpoint", tiny_ckpt)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for f in bench.REPORT_FILES:
+        assert (out / f).exists() and (out / f).stat().st_size > 100, f
+    md = (out / "report.md").read_text()
+    for heading in ("Table 1", "Table 4", "Fig. 4 left", "Fig. 4 right", "Fig. 5", "Fig. 7", "Fig. 8", "error rate"):
+        assert heading in md, heading
+    assert "| Base + SFT (T) |" in md and "| WMSD (T) |" in md and " ± " in md
+    runs = len(bench.EXPERIMENTS) * 2
+    assert f"0 of {runs} runs already done" in r.stdout and f"[{runs}/{runs}]" in r.stdout
+    cmd = json.load(open(out / "runs" / "wmsd_s1" / "report_cmd.json"))["cmd"]
+    assert cmd[cmd.index("--seed") + 1] == "1" and "--quick" not in cmd
+    again = run("bench.py", "--report", str(out), "--quick", "--checkpoint", tiny_ckpt)
+    assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
+
+
+def test_report_bad_input(tmp_path):
+    r = run("bench.py", "--report", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
+    assert r.returncode == 2 and "does not exist" in r.stderr
+    assert not os.listdir(tmp_path)
+    r = run("bench.py", "--report", str(tmp_path), "--jobs", "0")
+    assert r.returncode == 2 and "--jobs" in r.stderr
+
+
+@pytest.mark.parametrize("bad", ["--variant sft,xyz"])
+def test_unknown_variant_names_sft(bad, tmp_path):
+    r = run("train.py", "--stage", "distill", *bad.split(), "--run_dir", str(tmp_path))
+    assert r.returncode == 2 and "sft" in r.stderr
