@@ -32,6 +32,7 @@ import world
 
 DEFAULT_ERROR_RATE = 0.3  # the toy VLM's share of wrong descriptions; chosen so the "+VLM" row lands in 0.45-0.70
 KEYS = ("task", "agent", "consistency")
+DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty")
@@ -111,11 +112,15 @@ def format_table(res: dict, title: str = "") -> str:
     return "\n".join(rows)
 
 
+def strip(videos: np.ndarray, rows: int = 8) -> np.ndarray:
+    """One video per row, frames left to right: uint8 (rows * H, F * W, 3)."""
+    return np.concatenate([np.concatenate(list(vid), axis=1) for vid in videos[:rows]], axis=0)
+
+
 def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> None:
-    """A PNG with one video per row, frames left to right."""
+    """A PNG of strip(videos), each pixel scaled up `scale` times."""
     from PIL import Image
-    v = videos[:rows]
-    img = np.concatenate([np.concatenate(list(vid), axis=1) for vid in v], axis=0)
+    img = strip(videos, rows)
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
@@ -147,7 +152,7 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-        demo = next((r["fixed"].get("Base + VLM (Demonstrator, toy VLM's D)") for r in data.values()
+        demo = next((r["fixed"].get(DEMO_ROW) for r in data.values()
                      if r["fixed"]), None)
         for ax, key in zip(axes, ("task", "consistency")):
             for label, r in data.items():
@@ -168,7 +173,7 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
 # the reproduction report: every experiment below, over seeds, into one folder of tables and figures
 # ================================================================================================================
 
-# name -> (train.py stage, flags beyond the budget's); one run per (name, seed). What each feeds is in REPORT_DOC.
+# name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
 EXPERIMENTS = {
     "wmsd": ("rl", []),                                                    # Tab. 1/4, Figs. 4R (b=1), 5 (ii), 7, 8
     "no_anchor": ("rl", ["--beta_d", "0", "--lambda_distill", "0"]),       # Fig. 5 (i): RL from the judges alone
@@ -288,7 +293,7 @@ def curve_band(ax, runs: list[list[dict]], key: str, label: str) -> None:
 
 
 def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
-    """Every table and figure of REPORT_DOC from finished runs: evaluates the final checkpoints (bench noise seed =
+    """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
     the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
     import os
     rows, lines = {}, []
@@ -353,7 +358,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
                      f"{fmt(r['evals'][-1]['task'] for r in curves[name])} | "
                      f"{fmt(r['evals'][-1]['consistency'] for r in curves[name])} |")
     # Fig. 5: the four training settings
-    demo = [r["fixed"]["Base + VLM (Demonstrator, toy VLM's D)"] for r in curves["wmsd"]]
+    demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]
     plt, fig, axes = _plot(2)
     for ax, key in zip(axes, ("task", "consistency")):
         for name, label in FIG5.items():
@@ -399,14 +404,9 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
                       for g, (_, v) in rows["Base (T)"][0][part].items())
     lines.append(f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.")
     # Fig. 8: with and without the consistency reward
-    from PIL import Image
-    strips = []
-    for name in ("wmsd", "no_cons"):
-        v = finals[(name, seeds[0])][1][:6]
-        strips.append(np.concatenate([np.concatenate(list(x), axis=1) for x in v], axis=0))
-    sep = np.full((strips[0].shape[0], 4, 3), 255, np.uint8)
-    img = np.concatenate([strips[0], sep, strips[1]], axis=1)
-    Image.fromarray(img).resize((img.shape[1] * 5, img.shape[0] * 5), Image.NEAREST).save(os.path.join(out, "fig8.png"))
+    a, b = (finals[(name, seeds[0])][1][:6] for name in ("wmsd", "no_cons"))
+    sep = np.full((*a.shape[:3], 1, 3), 255, np.uint8)         # a white column between the two videos of a row
+    save_strip(np.concatenate([a, sep, b], axis=3), os.path.join(out, "fig8.png"), rows=6, scale=5)
     lines += ["", "## Fig. 8: with and without the consistency reward", "",
               f"Frames of the first 6 bench videos (seed {seeds[0]}), left WMSD, right WMSD without r_cons:", "",
               "![](fig8.png)", "", "| | task | agent | consistency |", "|---|---|---|---|"]
@@ -419,7 +419,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "![](error_rate.png)", "", "| error rate | Demonstrator task | WMSD task @end | gain |", "|---|---|---|---|"]
     pts = []
     for name, e in ERRORS.items():
-        d = [r["fixed"]["Base + VLM (Demonstrator, toy VLM's D)"]["task"] for r in curves[name]]
+        d = [r["fixed"][DEMO_ROW]["task"] for r in curves[name]]
         x = [r["evals"][-1]["task"] for r in curves[name]]
         gain = [b - a for a, b in zip(d, x)]
         pts.append((e, mean_sd(d), mean_sd(x), mean_sd(gain)))

@@ -820,7 +820,7 @@ def rl_stage(args: Args) -> dict:
         fixed = state["fixed"]
     elif rank0:
         fixed = {"Base (T)": evaluate_executor(model, args),           # no adapters yet: the base given T
-                 "Base + VLM (Demonstrator, toy VLM's D)": evaluate_executor(model, args, demonstrator=True)}
+                 bench.DEMO_ROW: evaluate_executor(model, args, demonstrator=True)}
         fixed = {name: {k: r[k] for k in keys} for name, r in fixed.items()}
     else:
         fixed = {}
@@ -854,7 +854,7 @@ def rl_stage(args: Args) -> dict:
     elif rank0:
         base_T = fixed["Base (T)"]
         evals = [{"step": 0, **{k: base_T[k] for k in keys[:4]}}]
-    demo = fixed.get("Base + VLM (Demonstrator, toy VLM's D)", {})
+    demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
         say(f"{len(pairs)} training pairs; {_world()} process(es); base given T: task {fixed['Base (T)']['task']:.3f} "
             f"consistency {fixed['Base (T)']['consistency']:.3f}; Demonstrator (toy VLM's D): task "
