@@ -87,6 +87,9 @@ class Args:
     evidence: int = 5
     """toy base: add the log-likelihood of x_t under each DNA move, summed over this window, to the filter logits
     (models.ToyConfig; 0 = off)"""
+    evidence_by_colour: bool = True
+    """toy base: pool a sprite pixel's evidence only over its own sprite (same colour), a background pixel's not at
+    all, instead of the whole window (models.ToyVideoFlow._pool_evidence); --no-evidence_by_colour: plain window"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
@@ -280,7 +283,8 @@ def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> to
 
 def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
-    model = models.make_model("toy", width=args.width, evidence=args.evidence)
+    model = models.make_model("toy", width=args.width, evidence=args.evidence,
+                              evidence_by_colour=args.evidence_by_colour)
     ema = copy.deepcopy(model).requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (

@@ -119,8 +119,8 @@ def test_evidence_lets_x_t_choose_the_move_the_text_leaves_open():
     video = world.render(scene, world.simulate(scene, world.Plan(0, 1, 0, 5)))[None]    # red moves right 5 px
     still = world.render(scene, world.simulate(scene, world.Plan(None)))[None]
     torch.manual_seed(0)
-    for evidence in (5, 0):
-        m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, evidence=evidence)
+    for evidence, by_colour in ((5, False), (5, True), (0, False)):
+        m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, evidence=evidence, evidence_by_colour=by_colour)
         c = m.condition(video[:, 0], [""])
         x_1, t = m.encode_video(video), torch.tensor([0.8])
         x_t = (1 - t) * torch.randn(x_1.shape, generator=torch.Generator().manual_seed(0)) + t * x_1
@@ -132,3 +132,24 @@ def test_evidence_lets_x_t_choose_the_move_the_text_leaves_open():
             assert to_moving < 0.05 and to_still > 0.5, (to_moving, to_still)
         else:   # the centre tap's prior keeps ~98% per frame: a still video, slightly blurred
             assert to_still < 0.15 and to_moving > 0.5, (to_moving, to_still)
+
+
+def test_evidence_by_colour_does_not_drag_a_still_neighbour():
+    """A plain 5x5 evidence window drags a still sprite just below a moving one along with it (the failure seen in
+    the base given the error-free D); pooling only over the pixel's own colour keeps the neighbour still."""
+    scene = world.Scene([world.Sprite("red", "square", 4, 8), world.Sprite("blue", "cross", 4, 11)])
+    video = world.render(scene, world.simulate(scene, world.Plan(0, 1, 0, 5)))[None]    # red moves right, blue stays
+    blue = np.all(video == world.COLOURS["blue"], axis=-1)[0, 1:]                        # blue's pixels (T, H, W)
+    torch.manual_seed(0)
+    for by_colour in (True, False):
+        m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, evidence=5, evidence_by_colour=by_colour)
+        c = m.condition(video[:, 0], [""])
+        x_1, t = m.encode_video(video), torch.tensor([0.8])
+        x_t = (1 - t) * torch.randn(x_1.shape, generator=torch.Generator().manual_seed(0)) + t * x_1
+        with torch.no_grad():
+            x1_hat = x_t + (1 - t) * m(x_t, t, c)
+        err_blue = (x1_hat - x_1).abs().amax(2)[0][torch.as_tensor(blue)].max().item()
+        if by_colour:
+            assert (x1_hat - x_1).abs().max().item() < 0.05, err_blue
+        else:
+            assert err_blue > 0.5, err_blue
