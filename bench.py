@@ -202,6 +202,24 @@ BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its n
 SUMMARY = {"rl": "rl_summary.json", "distill": "distill_summary.json"}
 
 
+def file_digest(path: str) -> str:
+    """The first 16 hex digits of a file's SHA-256: which base checkpoint a report run started from."""
+    import hashlib
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()[:16]
+
+
+def finished_run(d: str, stage: str, cmd: list, base: str) -> bool:
+    """Whether run dir d holds a finished run of this command from this base checkpoint (then the report reuses
+    it; a rebuilt base, or changed flags, means the run is done again)."""
+    import os
+    done = os.path.join(d, "report_cmd.json")
+    if not (os.path.isfile(done) and os.path.isfile(os.path.join(d, SUMMARY[stage]))):
+        return False
+    rec = json.load(open(done))
+    return rec["cmd"] == cmd and rec.get("base") == base
+
+
 def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init: str = "") -> dict:
     """Run every (experiment, seed) of EXPERIMENTS that `out`/runs does not already hold finished with the same
     command, `jobs` at a time (each train.py with 2 // jobs threads). Returns {(name, seed): run_dir}. A run that
@@ -210,7 +228,7 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
     import os
     import subprocess
     from concurrent.futures import ThreadPoolExecutor
-    todo, dirs = [], {}
+    todo, dirs, base = [], {}, file_digest(init or models.SHIPPED_BASE)
     for name, (stage, flags) in EXPERIMENTS.items():
         for seed in seeds:
             d = os.path.join(out, "runs", f"{name}_s{seed}")
@@ -218,11 +236,8 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
                    stage, "--seed", str(seed), "--run_dir", d, *BUDGETS[budget][stage], *flags,
                    *(["--init", init] if init else [])]
             dirs[(name, seed)] = d
-            done = os.path.join(d, "report_cmd.json")
-            if os.path.isfile(done) and os.path.isfile(os.path.join(d, SUMMARY[stage])) and \
-                    json.load(open(done))["cmd"] == cmd[2:]:
-                continue
-            todo.append((name, seed, d, cmd))
+            if not finished_run(d, stage, cmd[2:], base):
+                todo.append((name, seed, d, cmd))
     todo.sort(key=lambda item: item[0] != "distill")   # the longest runs first, so no core idles at the end
     print(f"report: {len(dirs) - len(todo)} of {len(dirs)} runs already done; running {len(todo)}, {jobs} at a time",
           flush=True)
@@ -237,7 +252,8 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
         if rc != 0:
             tail = open(os.path.join(d, "log.txt")).read().splitlines()[-8:]
             raise RuntimeError(f"run {name} seed {seed} failed (exit {rc}); {d}/log.txt ends:\n" + "\n".join(tail))
-        json.dump({"cmd": cmd[2:], "minutes": (time.time() - t0) / 60}, open(os.path.join(d, "report_cmd.json"), "w"))
+        json.dump({"cmd": cmd[2:], "base": base, "minutes": (time.time() - t0) / 60},
+                  open(os.path.join(d, "report_cmd.json"), "w"))
         finished.append(name)
         print(f"report: [{len(finished)}/{len(todo)}] {name} seed {seed} done in {(time.time() - t0) / 60:.1f} min "
               f"({(time.time() - start) / 60:.1f} min so far)", flush=True)

@@ -64,6 +64,19 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
 
 
+def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
+    d = str(tmp_path)
+    assert not bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # nothing there
+    json.dump({"cmd": ["--seed", "0"], "base": "aaaa", "minutes": 1.0}, open(tmp_path / "report_cmd.json", "w"))
+    assert not bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # no summary: it did not finish
+    (tmp_path / bench.SUMMARY["rl"]).write_text("{}")
+    assert bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")
+    assert not bench.finished_run(d, "rl", ["--seed", "1"], "aaaa")                  # other flags
+    assert not bench.finished_run(d, "rl", ["--seed", "0"], "bbbb")                  # a rebuilt base
+    (tmp_path / "ck.pt").write_bytes(b"x")
+    assert bench.file_digest(str(tmp_path / "ck.pt")) == "2d711642b726b044"       # sha256(b"x")[:16]
+
+
 def test_report_bad_input(tmp_path):
     r = run("bench.py", "--report", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
     assert r.returncode == 2 and "does not exist" in r.stderr
