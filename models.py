@@ -493,6 +493,21 @@ def _require(*packages: str) -> None:
                           f"-r requirements-real.txt")
 
 
+def _image_batch(frame0, height: int, width: int) -> torch.Tensor:
+    """First frames (B, H, W, 3) uint8 -> (B, 3, height, width) in [-1, 1], bilinear: a real backend's VAE input."""
+    img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)
+    return F_.interpolate(img, size=(height, width), mode="bilinear", align_corners=False)
+
+
+def _with_first_frame(video: torch.Tensor, frame0) -> np.ndarray:
+    """A real backend's decoded video (B, 3, F, H, W) in [-1, 1] -> uint8 (B, F, H, W, 3) whose frame 0 is the given
+    observation (nearest-resized to H x W), as in the toy's decode: frame 0 is the condition, not generated."""
+    video = ((video.clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 2, 3, 4, 1).cpu().numpy()
+    f0 = torch.as_tensor(np.asarray(frame0)).permute(0, 3, 1, 2).float()
+    video[:, 0] = F_.interpolate(f0, size=video.shape[2:4], mode="nearest").permute(0, 2, 3, 1).round().byte().numpy()
+    return video
+
+
 LTX2_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)"  # Table 3: video attention only
 
 
@@ -640,16 +655,177 @@ class LTX2Video(nn.Module):
         """Latents of the generated frames -> uint8 video (B, F, H, W, 3), decoded together with the first frame."""
         z = self._normalise(torch.cat([self._image_latent(frame0), x_1.float()], dim=2), inverse=True)
         video = self.vae.decode(z.to(self.vae.dtype), return_dict=False)[0].float()     # (B, 3, F', H, W)
-        video = ((video.clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 2, 3, 4, 1).cpu().numpy()
-        f0 = torch.as_tensor(np.asarray(frame0)).permute(0, 3, 1, 2).float()
-        f0 = F_.interpolate(f0, size=(self.height, self.width), mode="nearest").permute(0, 2, 3, 1)
-        video[:, 0] = f0.round().byte().numpy()      # frame 0 is the given observation, as in the toy's decode
-        return video
+        return _with_first_frame(video, frame0)
 
     @torch.no_grad()
     def _image_latent(self, frame0) -> torch.Tensor:
         """First frames (B, H, W, 3) uint8 -> normalised VAE latents (B, C, 1, h, w) at the model's resolution."""
         dev = next(self.transformer.parameters()).device
-        img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)     # (B, 3, H, W)
-        img = F_.interpolate(img, size=(self.height, self.width), mode="bilinear", align_corners=False)
+        img = _image_batch(frame0, self.height, self.width)
         return self._normalise(self.vae.encode(img[:, :, None].to(dev, self.vae.dtype)).latent_dist.mode().float())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# HunyuanVideo-1.5 image-to-video through diffusers (the paper's second base, Table 1 / Table 3), same interface
+# ----------------------------------------------------------------------------------------------------------------
+
+HY15_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn\.(to_q|to_k|to_v|to_out\.0)"  # video stream only, not add_*_proj
+
+
+class HunyuanVideo15(nn.Module):
+    """HunyuanVideo-1.5 image-to-video (diffusers' HunyuanVideo15Transformer3DModel + its VAE, the Qwen2.5-VL text
+    encoder, ByT5 for quoted text, SigLIP for the first frame; its PIL image processor, since the default one needs
+    torchvision) as v_theta(x_t, t | c) in this repository's convention.
+
+    State: x (B, C, F_lat, h, w), the VAE latents of *all* latent frames. Unlike LTX-2, HunyuanVideo-1.5 denoises the
+    first latent frame too; the first frame conditions it three ways, as in diffusers' image-to-video pipeline: its
+    VAE latent as extra input channels at latent frame 0 (zeros elsewhere), a mask channel (1 at frame 0), and SigLIP
+    tokens of the image beside the text tokens. Time: our t (0 noise, 1 data) is the scheduler's sigma = 1 - t,
+    passed as timestep 1000 sigma; the transformer predicts d x / d sigma = noise - data, so v_ours = -output. This is
+    the only place the other convention appears. Text: the pipeline's own encoders (Qwen2.5-VL hidden states three
+    layers from the top, after its chat template with the system prompt cropped off; ByT5 zeros unless the prompt
+    quotes text). The encoders and the VAE are frozen and run without gradients. The VAE runs one video at a time:
+    its mid-block attention mask does not broadcast over a batch (diffusers 0.42: a batch of 2 raises)."""
+
+    backend = "hunyuan15"
+
+    def __init__(self, transformer, vae, text_encoder, tokenizer, text_encoder_2, tokenizer_2, image_encoder,
+                 feature_extractor, frames: int, height: int, width: int, max_sequence_length: int = 1000,
+                 crop_start: int = 108, byt5_max_length: int = 256):
+        super().__init__()
+        self.transformer, self.vae, self.text_encoder, self.text_encoder_2 = transformer, vae, text_encoder, text_encoder_2
+        self.image_encoder, self.feature_extractor = image_encoder, feature_extractor
+        self.tokenizer, self.tokenizer_2 = tokenizer, tokenizer_2
+        self.frames, self.height, self.width = frames, height, width
+        self.max_len, self.crop_start, self.byt5_max_len = max_sequence_length, crop_start, byt5_max_length
+        for m in (vae, text_encoder, text_encoder_2, image_encoder):
+            m.requires_grad_(False).eval()
+        with torch.no_grad():   # the latent grid, read off the VAE itself
+            z = vae.encode(torch.zeros(1, 3, frames, height, width)).latent_dist.mode()
+        self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
+
+    # -- construction ------------------------------------------------------------------------------------------
+    @classmethod
+    def from_pretrained(cls, path: str, frames: int = 121, height: int = 480, width: int = 848, dtype=torch.bfloat16):
+        """Load the components from a local diffusers HunyuanVideo-1.5 image-to-video directory (e.g. a snapshot of
+        hunyuanvideo-community/HunyuanVideo-1.5-Diffusers-480p_i2v); Table 3's training resolution and frame count
+        are the defaults."""
+        _require("diffusers", "transformers", "peft")
+        if not os.path.isdir(path):
+            raise FileNotFoundError(f"HunyuanVideo-1.5 weights not found at {path!r} (a local diffusers directory is "
+                                    f"needed; nothing is downloaded)")
+        from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
+        from transformers import (AutoTokenizer, ByT5Tokenizer, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
+                                  SiglipVisionModel, T5EncoderModel)
+        load = dict(torch_dtype=dtype)
+        return cls(HunyuanVideo15Transformer3DModel.from_pretrained(path, subfolder="transformer", **load),
+                   AutoencoderKLHunyuanVideo15.from_pretrained(path, subfolder="vae", **load),
+                   Qwen2_5_VLTextModel.from_pretrained(path, subfolder="text_encoder", **load),
+                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   T5EncoderModel.from_pretrained(path, subfolder="text_encoder_2", **load),
+                   ByT5Tokenizer.from_pretrained(path, subfolder="tokenizer_2"),
+                   SiglipVisionModel.from_pretrained(path, subfolder="image_encoder", **load),
+                   SiglipImageProcessorPil.from_pretrained(path, subfolder="feature_extractor"), frames, height, width)
+
+    @classmethod
+    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0):
+        """A random-weight HunyuanVideo-1.5 of the real classes, small enough for CPU tests (sizes after diffusers'
+        own tests; a word-level tokenizer whose chat template keeps only the user turn, so nothing is cropped)."""
+        _require("diffusers", "transformers", "tokenizers")
+        from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
+        from tokenizers import Tokenizer as HFTokenizer
+        from tokenizers import models as tok_models
+        from tokenizers import pre_tokenizers
+        from transformers import (ByT5Tokenizer, PreTrainedTokenizerFast, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel,
+                                  SiglipImageProcessorPil, SiglipVisionConfig, SiglipVisionModel, T5Config,
+                                  T5EncoderModel)
+        specials = ["<pad>", "<eos>", "<unk>"]
+        vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
+        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
+        tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
+        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>",
+                                            unk_token="<unk>")
+        tokenizer.chat_template = "{% for m in messages %}{% if m['role'] == 'user' %}{{ m['content'] }}{% endif %}{% endfor %}"
+        torch.manual_seed(seed)
+        text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
+            vocab_size=len(vocab), hidden_size=16, intermediate_size=16, num_hidden_layers=3, num_attention_heads=2,
+            num_key_value_heads=2, rope_theta=1e6,
+            rope_scaling={"mrope_section": [1, 1, 2], "rope_type": "default", "type": "default"}))
+        byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=32, d_kv=8, d_ff=32, num_layers=1, num_heads=2))
+        siglip = SiglipVisionModel(SiglipVisionConfig(hidden_size=12, intermediate_size=16, num_hidden_layers=1,
+                                                      num_attention_heads=2, image_size=32, patch_size=8))
+        transformer = HunyuanVideo15Transformer3DModel(
+            in_channels=4 + 4 + 1, out_channels=4, num_attention_heads=2, attention_head_dim=8, num_layers=2,
+            num_refiner_layers=1, mlp_ratio=2.0, patch_size=1, patch_size_t=1, text_embed_dim=16, text_embed_2_dim=32,
+            image_embed_dim=12, rope_axes_dim=(2, 2, 4), target_size=32, task_type="i2v")
+        vae = AutoencoderKLHunyuanVideo15(
+            in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(16, 16), layers_per_block=1,
+            spatial_compression_ratio=4, temporal_compression_ratio=2, downsample_match_channel=False,
+            upsample_match_channel=False)
+        return cls(transformer, vae, text, tokenizer, byt5, ByT5Tokenizer(), siglip,
+                   SiglipImageProcessorPil(size={"height": 32, "width": 32}), frames, height, width,
+                   max_sequence_length=16, crop_start=0, byt5_max_length=16)
+
+    # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
+    def add_lora(self, rank: int, alpha: float, target: str = HY15_VIDEO_ATTENTION) -> list[str]:
+        """Table 3: LoRA rank 64 / alpha 128; here on the video stream's attention projections (the joint blocks'
+        to_q/k/v/out; the text stream's add_*_proj stay frozen), B = 0 at init."""
+        from peft import LoraConfig
+        self.transformer.requires_grad_(False)
+        self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha, target_modules=target,
+                                                init_lora_weights=True))
+        return [n for n, _ in self.transformer.named_parameters() if "lora_" in n]
+
+    # -- the interface every backend provides -------------------------------------------------------------------
+    def latent_shape(self) -> tuple:
+        return self._latent
+
+    @torch.no_grad()
+    def condition(self, frame0, texts: list[str]) -> dict:
+        """c = (first frame (B, H, W, 3) uint8, prompts) -> {first-frame VAE latent (B, C, 1, h, w), SigLIP tokens,
+        Qwen2.5-VL and ByT5 embeddings with their masks}, through the pipeline's own encoding functions."""
+        from diffusers.pipelines.hunyuan_video1_5.pipeline_hunyuan_video1_5_image2video import \
+            HunyuanVideo15ImageToVideoPipeline as Pipe
+        from PIL import Image
+        dev = next(self.transformer.parameters()).device
+        texts = [t.strip() for t in texts]
+        emb, mask = Pipe._get_mllm_prompt_embeds(self.text_encoder, self.tokenizer, texts, dev,
+                                                 tokenizer_max_length=self.max_len, crop_start=self.crop_start)
+        emb2, mask2 = Pipe._get_byt5_prompt_embeds(self.tokenizer_2, self.text_encoder_2, texts, dev,
+                                                   tokenizer_max_length=self.byt5_max_len)
+        images = [Image.fromarray(f).resize((self.width, self.height), Image.BILINEAR) for f in np.asarray(frame0)]
+        pix = self.feature_extractor.preprocess(images=images, do_resize=True, return_tensors="pt")
+        siglip = self.image_encoder(pixel_values=pix.pixel_values.to(dev, self.image_encoder.dtype)).last_hidden_state
+        return {"image_latent": self._image_latent(frame0), "image_embeds": siglip, "text": emb, "mask": mask,
+                "text_2": emb2, "mask_2": mask2}
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
+        B, C, F, h, w = x_t.shape
+        cond = torch.zeros_like(x_t)
+        cond[:, :, :1] = c["image_latent"].to(x_t)                         # the first frame's latent at frame 0
+        mask = torch.zeros(B, 1, F, h, w, dtype=x_t.dtype, device=x_t.device)
+        mask[:, :, 0] = 1
+        dtype = next(self.transformer.parameters()).dtype
+        sigma = (1 - t).float()                                            # the scheduler's convention
+        out = self.transformer(
+            hidden_states=torch.cat([x_t, cond, mask], dim=1).to(dtype), timestep=(1000 * sigma).to(dtype),
+            encoder_hidden_states=c["text"].to(dtype), encoder_attention_mask=c["mask"],
+            encoder_hidden_states_2=c["text_2"].to(dtype), encoder_attention_mask_2=c["mask_2"],
+            image_embeds=c["image_embeds"].to(dtype), return_dict=False)[0]
+        return -out.float()                                                # d x / d t = -d x / d sigma
+
+    @torch.no_grad()
+    def decode(self, x_1: torch.Tensor, frame0) -> np.ndarray:
+        """Latents of all frames -> uint8 video (B, F, H, W, 3); frame 0 is replaced by the given observation."""
+        z = (x_1.float() / self.vae.config.scaling_factor).to(self.vae.dtype)
+        video = torch.cat([self.vae.decode(z[i:i + 1], return_dict=False)[0] for i in range(len(z))]).float()
+        return _with_first_frame(video, frame0)                               # (B, 3, F', H, W) in, uint8 out
+
+    @torch.no_grad()
+    def _image_latent(self, frame0) -> torch.Tensor:
+        """First frames (B, H, W, 3) uint8 -> scaled VAE latents (B, C, 1, h, w) at the model's resolution."""
+        dev = next(self.transformer.parameters()).device
+        img = _image_batch(frame0, self.height, self.width)
+        img = img[:, :, None].to(dev, self.vae.dtype)
+        z = torch.cat([self.vae.encode(img[i:i + 1]).latent_dist.mode() for i in range(len(img))]).float()
+        return z * self.vae.config.scaling_factor

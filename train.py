@@ -11,7 +11,7 @@
   rl       -- the whole method, Alg. 1 (the default stage): groups of Executor rollouts, the judges (reward.py),
               r_distill (Eq. 9), group-relative advantages of the Eq. 10 reward, L_RL (rl.py: awm | flow-grpo |
               grpo | nft) + beta_d L_anchor (Eq. 12). Alg. 2 with --alternate N. Runs under torchrun, resumes with
-              --resume, stops cleanly on non-finite values. --model ltx2 / --judge qwen-vl / --dataset for real models.
+              --resume, stops cleanly on non-finite values. --model ltx2|hunyuan15 / --judge qwen-vl / --dataset for real models.
 
   python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
   python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
@@ -43,6 +43,8 @@ import models
 import reward
 import rl
 import world
+
+REAL_MODELS = {"ltx2": models.LTX2Video, "hunyuan15": models.HunyuanVideo15}   # --model: the paper's two bases
 
 
 @dataclass
@@ -121,10 +123,10 @@ class Args:
     clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
-    --model_path; pip install -r requirements-real.txt) | ltx2-tiny (random-weight LTX-2 of the real classes, for
-    checking the real path on a CPU)"""
+    --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
+    ltx2-tiny, hunyuan15-tiny (random-weight models of the real classes, for checking the real path on a CPU)"""
     model_path: str = ""
-    """--model ltx2: a local diffusers LTX-2 directory (transformer/, vae/, text_encoder/, tokenizer/, connectors/)"""
+    """--model ltx2 / hunyuan15: a local diffusers directory of the model (transformer/, vae/, text_encoder/, ...)"""
     dataset: str = ""
     """a WorldTasks JSONL file (image, task, description per line; world.make_worldtasks writes one) to train on
     instead of the toy VLM's pairs"""
@@ -211,7 +213,7 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
-                          ("model", ("toy", "ltx2", "ltx2-tiny")), ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
+                          ("model", tuple(REAL_MODELS) + ("toy", "ltx2-tiny", "hunyuan15-tiny")), ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
@@ -224,8 +226,9 @@ def parse_args(argv=None) -> Args:
         p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:
         p.error("--error_rate must lie in [0, 1]")
-    if args.model == "ltx2" and not args.model_path:
-        p.error("--model ltx2 needs --model_path (a local diffusers LTX-2 directory; nothing is downloaded)")
+    if args.model in REAL_MODELS and not args.model_path:
+        p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
+                f"directory; nothing is downloaded)")
     if args.judge == "qwen-vl" and not args.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
@@ -467,8 +470,8 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0)
     exe = models.generate(model, frame0, [p.task.text for p in pairs], args.sample_steps, seed=0)
     sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
-    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
-    frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(world.F)]
+    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3): F of the model
+    frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
     imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
 
@@ -769,9 +772,9 @@ def load_base(args: Args):
     """The base video model named by --model (the Executor and, adapters off, the Demonstrator)."""
     if args.model == "toy":
         return models.load_checkpoint(args.init or None)[0]
-    if args.model == "ltx2-tiny":
-        return models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
-    model = models.LTX2Video.from_pretrained(args.model_path)
+    if args.model.endswith("-tiny"):
+        return REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    model = REAL_MODELS[args.model].from_pretrained(args.model_path)
     return model.to("cuda") if torch.cuda.is_available() else model
 
 

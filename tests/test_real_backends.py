@@ -1,6 +1,6 @@
-"""The LTX-2 backend (diffusers + peft) on a tiny random-weight model of the real classes: the interface, the time
-convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA files, and one WMSD
-step through train.py. Skipped where the optional packages are absent (CI installs them)."""
+"""The LTX-2 and HunyuanVideo-1.5 backends (diffusers + peft) on tiny random-weight models of the real classes: the
+interface, the time convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA
+files, and one WMSD step through train.py. Skipped where the optional packages are absent (CI installs them)."""
 import json
 import re
 
@@ -19,12 +19,27 @@ import world  # noqa: E402
 from conftest import run  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def ltx():
-    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
+def _tiny(cls):
+    m = cls.tiny(world.VOCAB + ["[", "]:"])
     pairs = world.make_pairs(2, seed=0, error_rate=0.0)
     f0 = np.stack([p.frame0 for p in pairs])
     return m, f0, m.condition(f0, [p.task.text for p in pairs]), m.condition(f0, [p.d_oracle for p in pairs])
+
+
+@pytest.fixture(scope="module")
+def ltx():
+    return _tiny(models.LTX2Video)
+
+
+@pytest.fixture(scope="module")
+def hy():
+    return _tiny(models.HunyuanVideo15)
+
+
+LORA_NAMES = {  # Table 3: LoRA on the video stream's attention only
+    "ltx": r"transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)\.lora_[AB]\..*",
+    "hy": r"transformer_blocks\.\d+\.attn\.(to_q|to_k|to_v|to_out\.0)\.lora_[AB]\..*",
+}
 
 
 def test_velocity_is_converted_once_at_the_boundary(ltx):
@@ -52,15 +67,41 @@ def test_velocity_is_converted_once_at_the_boundary(ltx):
     assert np.array_equal(video[:, 0, ::2, ::2], f0)       # frame 0 is the given observation
 
 
-def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(ltx, tmp_path):
-    m, f0, c_E, c_D = ltx
+def test_hunyuan15_velocity_and_first_frame_conditioning(hy):
+    m, f0, c, _ = hy
+    x = torch.randn(2, *m.latent_shape())
+    t = torch.tensor([0.25, 0.75])
+    with torch.no_grad():
+        v = m(x, t, c)
+        # the transformer called directly as diffusers' image-to-video pipeline calls it: timestep 1000 sigma,
+        # sigma = 1 - t; the first frame's latent as channels at latent frame 0 and a mask channel
+        cond = torch.zeros_like(x)
+        cond[:, :, 0] = c["image_latent"][:, :, 0]
+        mask = torch.zeros_like(x[:, :1])
+        mask[:, :, 0] = 1
+        out = m.transformer(hidden_states=torch.cat([x, cond, mask], 1), timestep=1000 * (1 - t),
+                            encoder_hidden_states=c["text"], encoder_attention_mask=c["mask"],
+                            encoder_hidden_states_2=c["text_2"], encoder_attention_mask_2=c["mask_2"],
+                            image_embeds=c["image_embeds"], return_dict=False)[0]
+        other = m(x, t, m.condition(f0[::-1].copy(), ["[red square]: move to the blue circle"] * 2))
+    assert v.shape == x.shape == (2, *m.latent_shape()) and m.latent_shape()[1] == 3   # all latent frames
+    assert torch.allclose(v, -out, atol=1e-6)              # d x / d t = - d x / d sigma
+    assert not torch.allclose(v, other)                    # the first frame and the text reach the velocity
+    assert c["image_embeds"].shape[:2] == (2, 16) and c["text"].shape[0] == 2
+    video = m.decode(x, f0)
+    assert video.dtype == np.uint8 and video.shape[1:] == (m.frames, m.height, m.width, 3)
+    assert np.array_equal(video[:, 0, ::2, ::2], f0)       # frame 0 is the given observation
+
+
+@pytest.mark.parametrize("backend", ["ltx", "hy"])
+def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, request, tmp_path):
+    m, f0, c_E, c_D = request.getfixturevalue(backend)
     x0 = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
     t = torch.tensor([0.3, 0.6])
     with torch.no_grad():
         base = m(x0, t, c_E)
     names = models.add_lora(m, 4, 8.0)
-    assert names and all(re.fullmatch(r"transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)\.lora_[AB]\..*", n)
-                         for n in names)
+    assert names and all(re.fullmatch(LORA_NAMES[backend], n) for n in names)
     with torch.no_grad():
         assert torch.equal(m(x0, t, c_E), base)            # B = 0: the Executor starts as the base
     params = models.lora_parameters(m)
@@ -101,14 +142,19 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     assert r.returncode == 2 and "--model ltx2 needs --model_path" in r.stderr
     r = run("train.py", "--model", "ltx2", "--model_path", str(tmp_path / "nowhere"), "--run_dir", str(tmp_path / "r"))
     assert r.returncode == 2 and "LTX-2 weights not found" in r.stderr and "Traceback" not in r.stderr
+    r = run("train.py", "--model", "hunyuan15")
+    assert r.returncode == 2 and "--model hunyuan15 needs --model_path" in r.stderr
+    r = run("train.py", "--model", "hunyuan15", "--model_path", str(tmp_path / "nowhere"), "--run_dir", str(tmp_path / "r"))
+    assert r.returncode == 2 and "HunyuanVideo-1.5 weights not found" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_one_wmsd_run_on_tiny_ltx2_with_a_tiny_vlm_judge(tmp_path):
-    """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 rollouts, Qwen3-VL judgments (random weights
-    answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages, AWM + anchor, evaluation,
-    the LoRA file."""
+@pytest.mark.parametrize("model,judge", [("ltx2-tiny", "qwen-vl-tiny"), ("hunyuan15-tiny", "qwen-vl-tiny")])
+def test_one_wmsd_run_on_a_tiny_real_model(model, judge, tmp_path):
+    """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
+    judgments (random weights answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages,
+    AWM + anchor, evaluation, the LoRA file."""
     data = _toy_dataset(tmp_path / "data", 2)
-    r = run("train.py", "--model", "ltx2-tiny", "--judge", "qwen-vl-tiny", "--dataset", data, "--steps", "1",
+    r = run("train.py", "--model", model, "--judge", judge, "--dataset", data, "--steps", "1",
             "--group_size", "2", "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--sample_steps", "2",
             "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr[-2000:]
