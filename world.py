@@ -677,9 +677,63 @@ def load_dataset(path: str) -> list[dict]:
     return rows
 
 
-def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int = 8) -> dict:
-    """Sec. 4.1.1 / App. A.6 end to end: the image-quality filter, the VLM suitability filter (Fig. 12), and
-    `per_image` task-solution pairs per kept image from the VLM, written as JSONL (load_dataset's format).
+AESTHETIC_KEEP = 0.9   # App. A.6.1: keep the top 90% of the frames that pass the quality filter
+
+
+class CLIPAesthetic:
+    """App. A.6.1's "aesthetic score based on a CLIP-based scoring function": a linear head on CLIP's normalised
+    image embedding, the form of the LAION aesthetic predictor (the paper does not name its head). images (list of
+    RGB uint8 arrays) -> scores (np.ndarray, higher is better). Weights from local paths: a CLIP model directory
+    and a torch file holding the head's {"weight": (1, D), "bias": (1,)}."""
+
+    def __init__(self, clip, processor, head):
+        self.clip, self.processor, self.head = clip.eval(), processor, head.eval()
+
+    @classmethod
+    def from_pretrained(cls, clip_path: str, head_path: str):
+        import os
+
+        import torch
+        from transformers import CLIPImageProcessorPil, CLIPVisionModelWithProjection
+        for p in (clip_path, head_path):
+            if not os.path.exists(p):
+                raise FileNotFoundError(f"aesthetic scorer weights not found at {p!r} (nothing is downloaded)")
+        clip = CLIPVisionModelWithProjection.from_pretrained(clip_path)
+        head = torch.nn.Linear(clip.config.projection_dim, 1)
+        head.load_state_dict(torch.load(head_path, weights_only=True))
+        return cls(clip, CLIPImageProcessorPil.from_pretrained(clip_path), head)
+
+    @classmethod
+    def tiny(cls, seed: int = 0):
+        """Random weights of the real classes, for CPU tests."""
+        import torch
+        from transformers import CLIPImageProcessorPil, CLIPVisionConfig, CLIPVisionModelWithProjection
+        torch.manual_seed(seed)
+        clip = CLIPVisionModelWithProjection(CLIPVisionConfig(
+            hidden_size=16, intermediate_size=32, num_hidden_layers=1, num_attention_heads=2, image_size=32,
+            patch_size=8, projection_dim=8))
+        proc = CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32})
+        return cls(clip, proc, torch.nn.Linear(8, 1))
+
+    def __call__(self, images: list) -> np.ndarray:
+        import torch
+        with torch.no_grad():
+            pix = self.processor(images=[np.asarray(im) for im in images], return_tensors="pt").pixel_values
+            e = self.clip(pixel_values=pix).image_embeds
+            return self.head(e / e.norm(dim=-1, keepdim=True)).squeeze(-1).numpy()
+
+
+def aesthetic_top(scores, keep: float = AESTHETIC_KEEP) -> np.ndarray:
+    """Indices of the top `keep` share of `scores` (at least one when there are any), in their original order."""
+    scores = np.asarray(scores, float)
+    n = int(np.ceil(keep * len(scores))) if len(scores) else 0
+    return np.sort(np.argsort(-scores, kind="stable")[:n])
+
+
+def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int = 8, aesthetic=None) -> dict:
+    """Sec. 4.1.1 / App. A.6 end to end: the image-quality filter, the aesthetic ranking (with a scorer such as
+    CLIPAesthetic: keep the top 90% of what passed), the VLM suitability filter (Fig. 12), and `per_image`
+    task-solution pairs per kept image from the VLM, written as JSONL (load_dataset's format).
     `vlm` needs yes_no(images, prompt) -> list[bool | None] and generate(images, prompt) -> list[str]
     (reward.VLMJudge has both). Returns counts of what was kept and why the rest was dropped."""
     import json
@@ -696,6 +750,10 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
             kept.append(p)
         else:
             counts[why] = counts.get(why, 0) + 1
+    if aesthetic is not None and images:
+        top = aesthetic_top(aesthetic(images))
+        counts["low aesthetic score"] = len(images) - len(top)
+        images, kept = [images[i] for i in top], [kept[i] for i in top]
     suitable = vlm.yes_no(images, SUITABILITY_PROMPT) if images else []
     base = os.path.dirname(os.path.abspath(out_path))
     answers = vlm.generate([im for im, s in zip(images, suitable) if s], TASK_SOLUTION_PROMPT.format(n=per_image))

@@ -262,3 +262,30 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     judge = reward.VLMJudge.tiny(["press"])
     assert isinstance(judge.generate([checker], "Propose tasks", max_new_tokens=3)[0], str)
     assert len(judge.yes_no([checker, checker], world.SUITABILITY_PROMPT)) == 2
+
+
+def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
+    assert list(world.aesthetic_top([0.3, 0.9, 0.1, 0.5, 0.7, 0.2, 0.8, 0.4, 0.6, 0.0])) == list(range(9))
+    assert list(world.aesthetic_top([1.0])) == [0] and list(world.aesthetic_top([])) == []
+    scorer = world.CLIPAesthetic.tiny()
+    rng = np.random.default_rng(0)
+    imgs = [rng.integers(0, 256, (40, 48, 3)).astype(np.uint8) for _ in range(3)]
+    s = scorer(imgs)
+    assert s.shape == (3,) and np.isfinite(s).all() and len(set(np.round(s, 6))) == 3
+
+    class Everything:   # a VLM that finds every image suitable and answers with nothing parseable
+        def yes_no(self, images, prompt):
+            return [True] * len(images)
+
+        def generate(self, images, prompt):
+            return [""] * len(images)
+
+    from PIL import Image
+    paths = []
+    for i in range(10):
+        Image.fromarray(rng.integers(30, 220, (32, 32, 3)).astype(np.uint8)).save(tmp_path / f"{i}.png")
+        paths.append(str(tmp_path / f"{i}.png"))
+    counts = world.make_worldtasks(paths, Everything(), str(tmp_path / "wt.jsonl"), aesthetic=scorer)
+    assert counts["low aesthetic score"] == 1 and counts["unsuitable"] == 0
+    with pytest.raises(FileNotFoundError, match="aesthetic scorer weights not found"):
+        world.CLIPAesthetic.from_pretrained(str(tmp_path / "no_clip"), str(tmp_path / "no_head.pt"))
