@@ -669,7 +669,8 @@ class LTX2Video(nn.Module):
 # HunyuanVideo-1.5 image-to-video through diffusers (the paper's second base, Table 1 / Table 3), same interface
 # ----------------------------------------------------------------------------------------------------------------
 
-HY15_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn\.(to_q|to_k|to_v|to_out\.0)"  # video stream only, not add_*_proj
+# Table 3: LoRA on the video stream's attention only (the joint blocks' text stream, add_*_proj, stays frozen)
+HY15_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn\.(to_q|to_k|to_v|to_out\.0)"
 
 
 class HunyuanVideo15(nn.Module):
@@ -693,7 +694,8 @@ class HunyuanVideo15(nn.Module):
                  feature_extractor, frames: int, height: int, width: int, max_sequence_length: int = 1000,
                  crop_start: int = 108, byt5_max_length: int = 256):
         super().__init__()
-        self.transformer, self.vae, self.text_encoder, self.text_encoder_2 = transformer, vae, text_encoder, text_encoder_2
+        self.transformer, self.vae = transformer, vae
+        self.text_encoder, self.text_encoder_2 = text_encoder, text_encoder_2
         self.image_encoder, self.feature_extractor = image_encoder, feature_extractor
         self.tokenizer, self.tokenizer_2 = tokenizer, tokenizer_2
         self.frames, self.height, self.width = frames, height, width
@@ -745,7 +747,8 @@ class HunyuanVideo15(nn.Module):
         tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
         tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>",
                                             unk_token="<unk>")
-        tokenizer.chat_template = "{% for m in messages %}{% if m['role'] == 'user' %}{{ m['content'] }}{% endif %}{% endfor %}"
+        tokenizer.chat_template = ("{% for m in messages %}{% if m['role'] == 'user' %}{{ m['content'] }}{% endif %}"
+                                   "{% endfor %}")
         torch.manual_seed(seed)
         text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
             vocab_size=len(vocab), hidden_size=16, intermediate_size=16, num_hidden_layers=3, num_attention_heads=2,

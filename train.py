@@ -11,7 +11,8 @@
   rl       -- the whole method, Alg. 1 (the default stage): groups of Executor rollouts, the judges (reward.py),
               r_distill (Eq. 9), group-relative advantages of the Eq. 10 reward, L_RL (rl.py: awm | flow-grpo |
               grpo | nft) + beta_d L_anchor (Eq. 12). Alg. 2 with --alternate N. Runs under torchrun, resumes with
-              --resume, stops cleanly on non-finite values. --model ltx2|hunyuan15 / --judge qwen-vl / --dataset for real models.
+              --resume, stops cleanly on non-finite values. --model ltx2|hunyuan15 / --judge qwen-vl / --dataset
+              for real models.
 
   python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
   python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
@@ -213,7 +214,8 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
-                          ("model", tuple(REAL_MODELS) + ("toy", "ltx2-tiny", "hunyuan15-tiny")), ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
+                          ("model", ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS))),
+                          ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
