@@ -309,8 +309,8 @@ class ToyVideoFlow(nn.Module):
         B, C, H, W = prev.shape
         win = F_.unfold(prev, ev, padding=ev // 2).reshape(B, C, ev * ev, H, W)
         same = torch.exp(-((win - prev[:, :, None]) ** 2).sum(1) / 0.25)                     # (B, ev^2, H, W)
-        bg = torch.exp(-(prev ** 2).sum(1, keepdim=True) / 0.25)                               # (B, 1, H, W)
-        w = (1 - bg) * same
+        is_bg = torch.exp(-(prev ** 2).sum(1, keepdim=True) / 0.25)                            # (B, 1, H, W)
+        w = (1 - is_bg) * same
         w[:, ev * ev // 2] = 1                                   # the window's centre tap: the pixel itself
         lw = F_.unfold(ll, ev, padding=ev // 2).reshape(B, 9, ev * ev, H, W)
         return (lw * w[:, None]).sum(2)
