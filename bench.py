@@ -192,8 +192,8 @@ ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
 BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its numbers mean nothing)
-    "full": {"rl": ["--steps", "25", "--eval_every", "5", "--eval_n", "100"],
-             "distill": ["--steps", "25", "--eval_every", "5", "--eval_n", "100"]},
+    "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "100"],
+             "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "100"]},
     "quick": {"rl": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--tasks_per_step", "2", "--group_size", "2",
                      "--train_pairs", "8", "--sample_steps", "3"],
               "distill": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--batch", "4", "--train_pairs", "8",
@@ -224,7 +224,7 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
     """Run every (experiment, seed) of EXPERIMENTS that `out`/runs does not already hold finished with the same
     command, `jobs` at a time (each train.py with 2 // jobs threads). Returns {(name, seed): run_dir}. A run that
     fails stops the report with its log's last lines; finished runs are kept, so a rerun picks up where it
-    stopped."""
+    stopped. The runs share one --eval_cache: the base's own evaluations are computed once, not in every run."""
     import os
     import subprocess
     from concurrent.futures import ThreadPoolExecutor
@@ -233,7 +233,8 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
         for seed in seeds:
             d = os.path.join(out, "runs", f"{name}_s{seed}")
             cmd = [sys.executable, os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), "--stage",
-                   stage, "--seed", str(seed), "--run_dir", d, *BUDGETS[budget][stage], *flags,
+                   stage, "--seed", str(seed), "--run_dir", d, "--eval_cache", os.path.join(out, "runs", "eval_cache"),
+                   *BUDGETS[budget][stage], *flags,
                    *(["--init", init] if init else [])]
             dirs[(name, seed)] = d
             if not finished_run(d, stage, cmd[2:], base):

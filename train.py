@@ -25,6 +25,7 @@ import argparse
 import contextlib
 import copy
 import dataclasses
+import hashlib
 import json
 import os
 import random
@@ -118,6 +119,9 @@ class Args:
     """steps between bench evaluations"""
     eval_n: int = 200
     """bench pairs per evaluation"""
+    eval_cache: str = ""
+    """a folder where the base's own evaluations (given T; the Demonstrator given D) are kept and reused by later
+    runs from the same base file with the same evaluation settings (the report's runs share one); empty: off"""
     loss_power: float = 1.0
     """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
     puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
@@ -351,9 +355,35 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     return res
 
 
-def distill_variant(args: Args, variant: str, pairs: list, logf) -> tuple:
+def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
+    """evaluate_executor of the base itself (no adapters trained yet): given T, or the Demonstrator given the toy
+    VLM's D. The bench is deterministic (noise seed 0), so with --eval_cache the result is computed once per
+    (base file, settings) and read back by every later run -- the report's 33 runs would otherwise repeat it 66
+    times."""
+    if not args.eval_cache or args.model != "toy":
+        return evaluate_executor(model, args, demonstrator)
+    key = {"base": bench.file_digest(args.init or models.SHIPPED_BASE), "demonstrator": demonstrator,
+           "eval_n": args.eval_n, "error_rate": args.error_rate, "sample_steps": args.sample_steps,
+           "judge": args.judge, "judge_path": args.judge_path}
+    name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
+    path = os.path.join(args.eval_cache, name)
+    if os.path.isfile(path):
+        rec = json.load(open(path))
+        if rec.get("key") == key:
+            return rec["result"]
+    res = evaluate_executor(model, args, demonstrator)
+    os.makedirs(args.eval_cache, exist_ok=True)
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as f:        # written whole, then renamed: a run started beside this one never reads half
+        json.dump({"key": key, "result": res}, f)
+    os.replace(tmp, path)
+    return res
+
+
+def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> tuple:
     """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
-    steps. Returns (model, list of eval records)."""
+    steps and at the last. at_0 is the base's evaluation given T: a fresh LoRA (B = 0) is the base exactly, so
+    every variant's step 0 is that one evaluation. Returns (model, list of eval records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -368,7 +398,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf) -> tuple:
     evals, start = [], time.time()
 
     def log_eval(step):
-        res = evaluate_executor(model, args)
+        res = evaluate_executor(model, args) if step else at_0
         rec = {"variant": variant, "step": step, **{k: res[k] for k in ("task", "agent", "consistency", "avg")},
                "seconds": time.time() - start}
         evals.append(rec)
@@ -410,7 +440,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf) -> tuple:
         if step % args.log_every == 0 or step == args.steps:
             print(f"[{variant}] step {step:4d}/{args.steps} | loss {rec['loss']:.5f} | grad {rec['grad_norm']:.3f} | "
                   f"{rec['step_seconds']:.2f} s/step | {_eta(start, step, args.steps)}", flush=True)
-        if step % args.eval_every == 0:
+        if step % args.eval_every == 0 or step == args.steps:
             log_eval(step)
     return model, evals
 
@@ -424,14 +454,15 @@ def distill_stage(args: Args) -> dict:
     pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
     print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}) in {time.time() - t0:.0f} s")
     base, _ = models.load_checkpoint(args.init or None)
-    demo = evaluate_executor(base, args, demonstrator=True)
+    demo = base_evaluation(base, args, demonstrator=True)
+    at_0 = base_evaluation(base, args)
     print(f"Demonstrator (base given the toy VLM's D): task {demo['task']:.3f} agent {demo['agent']:.3f} "
           f"consistency {demo['consistency']:.3f}")
     variants = args.variant.split(",")
     results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {}}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:
-            model, evals = distill_variant(args, v, pairs, logf)
+            model, evals = distill_variant(args, v, pairs, logf, at_0)
             results["variants"][v] = evals
             out = args.out if (args.out and len(variants) == 1) else os.path.join(args.run_dir, f"executor_{v}.pt")
             models.save_checkpoint(models.merge_lora(model), out,  # LoRA folded in: loadable by bench.py
@@ -735,7 +766,8 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
 
-_RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy")
+_RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
+                "eval_cache")
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
@@ -828,8 +860,8 @@ def rl_stage(args: Args) -> dict:
     if state is not None:
         fixed = state["fixed"]
     elif rank0:
-        fixed = {"Base (T)": evaluate_executor(model, args),           # no adapters yet: the base given T
-                 bench.DEMO_ROW: evaluate_executor(model, args, demonstrator=True)}
+        fixed = {"Base (T)": base_evaluation(model, args),           # no adapters yet: the base given T
+                 bench.DEMO_ROW: base_evaluation(model, args, demonstrator=True)}
         fixed = {name: {k: r[k] for k in keys} for name, r in fixed.items()}
     else:
         fixed = {}

@@ -160,3 +160,22 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--adv_agg", "mean"], "--adv_agg: unknown")):
         r = run("train.py", *argv, "--run_dir", str(out))
         assert r.returncode == 2 and msg in r.stderr and not out.exists(), (argv, r.stderr)
+
+
+def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settings(tiny_ckpt, tmp_path, monkeypatch):
+    real, calls = train.evaluate_executor, []
+    monkeypatch.setattr(train, "evaluate_executor", lambda m, a, d=False: calls.append(d) or real(m, a, d))
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    a = _args(tiny_ckpt, tmp_path, eval_cache=tmp_path / "cache")
+    first = train.base_evaluation(model, a)
+    assert train.base_evaluation(model, a) == first and calls == [False]          # read back, not recomputed
+    train.base_evaluation(model, a, demonstrator=True)
+    train.base_evaluation(model, _args(tiny_ckpt, tmp_path, eval_cache=tmp_path / "cache", eval_n=5))
+    assert calls == [False, True, False]                                          # other condition / settings
+    other = tmp_path / "other.pt"
+    other.write_bytes(open(tiny_ckpt, "rb").read() + b"\0")                       # another base file
+    train.base_evaluation(model, _args(str(other), tmp_path, eval_cache=tmp_path / "cache"))
+    assert len(calls) == 4 and len(os.listdir(tmp_path / "cache")) == 4
+    timing = ("seconds", "seconds_per_video", "judge_seconds")
+    assert {k: v for k, v in first.items() if k not in timing} == \
+        {k: v for k, v in real(model, a).items() if k not in timing}              # the cached value is the value
