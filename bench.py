@@ -192,8 +192,8 @@ ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
 BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its numbers mean nothing)
-    "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "100"],
-             "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "100"]},
+    "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"],
+             "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"]},
     "quick": {"rl": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--tasks_per_step", "2", "--group_size", "2",
                      "--train_pairs", "8", "--sample_steps", "3"],
               "distill": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--batch", "4", "--train_pairs", "8",
