@@ -367,10 +367,8 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
            "judge": args.judge, "judge_path": args.judge_path}
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
     path = os.path.join(args.eval_cache, name)
-    if os.path.isfile(path):
-        rec = json.load(open(path))
-        if rec.get("key") == key:
-            return rec["result"]
+    if os.path.isfile(path):        # the file name is the key's hash
+        return json.load(open(path))["result"]
     res = evaluate_executor(model, args, demonstrator)
     os.makedirs(args.eval_cache, exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp"
