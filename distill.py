@@ -14,8 +14,9 @@ Reduction: ||.||^2 in the paper is a sum over latent dimensions; here it is a *m
 frames), so losses and r_distill do not scale with video size. That is the sum divided by d, a constant factor
 absorbed by beta_d and lambda_distill.
 
-Simplifications: the DMD generator is the Executor's own Euler sampler with gradients through all its steps
-(cheap on the toy); its fake score is a LoRA copy of the base.
+Simplifications: the DMD generator G_theta(z, c_E) is the Executor's clean estimate from a random state of its own
+no-grad trajectory from z (`dmd_generator`: one network call carries the gradient, DMD2's "backward simulation");
+its fake score is a LoRA copy of the base.
 """
 from __future__ import annotations
 
@@ -144,6 +145,20 @@ def make_fake_score(model, rank: int = 8, alpha: float = 16.0):
     for n, p in fake.named_parameters():
         p.requires_grad_("lora_" in n)
     return fake
+
+
+def dmd_generator(model, student_traj, c_E: dict, generator=None, shard: tuple | None = None) -> torch.Tensor:
+    """G_theta(z, c_E) of Eqs. 21-22 for a multi-step Executor: the paper's G_theta is a one-step generator; ours
+    samples in S Euler steps, so, as DMD2 does for multi-step students (Yin et al. 2024, "backward simulation"),
+
+        x = G_theta(z, c_E) = mu_theta(x̄_k, t_k | c_E) = x̄_k + (1 - t_k) v_theta(x̄_k, t_k | c_E),
+
+    the Executor's clean-video estimate at a random grid state x̄_k = sg(x_{t_k}) of its own trajectory from z
+    (`student_traj` = rollout(model, z, c_E, steps)). k = 0 is the literal one-step generator from noise. The
+    gradient flows through this one network call (measured on the toy: 100 steps took 5.9 min when it flowed
+    through all 10 Euler steps). Returns x (B, ...) with gradient."""
+    x_k, t_k = _pick_states(*student_traj, generator, shard)
+    return _denoise(model, x_k, t_k, c_E)
 
 
 def _denoise(model, x_t, t, c):

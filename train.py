@@ -6,8 +6,8 @@
               real video models see. It never sees a short task T. Writes checkpoints/base.pt (EMA weights).
   distill  -- self-distillation of the Demonstrator (base, adapters off, c_D = (I, D)) into the Executor (base +
               LoRA, c_E = (I, T)), distill.py: --variant off (Eq. 3), on (Eq. 5 = the anchor of Eq. 11 on the
-              Executor's own states), dmd (App. A.2.1). Several variants, comma-separated, run one after another
-              from the same base, and are plotted together (the paper's Fig. 4 left).
+              Executor's own states), dmd (App. A.2.1); sft and paired are SFT baselines. Several variants,
+              comma-separated, run one after another from the same base, plotted together (the paper's Fig. 4 left).
   rl       -- the whole method, Alg. 1 (the default stage): groups of Executor rollouts, the judges (reward.py),
               r_distill (Eq. 9), group-relative advantages of the Eq. 10 reward, L_RL (rl.py: awm | flow-grpo |
               grpo | nft) + beta_d L_anchor (Eq. 12). Alg. 2 with --alternate N. Runs under torchrun, resumes with
@@ -98,7 +98,9 @@ class Args:
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
     variant: str = "on"
-    """objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1) | sft (the +SFT baseline, Sec. 4.4)"""
+    """objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1) | sft (the +SFT baseline,
+    Sec. 4.4) | paired (SFT on the simulator's correct videos of the training tasks, labelled T: the paired
+    task-execution supervision the paper avoids needing -- a reference, not WMSD)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -336,7 +338,7 @@ def pretrain(args: Args) -> dict:
 # stage: self-distillation (Sec. 3, distill.py)
 # ================================================================================================================
 
-VARIANTS = ("off", "on", "dmd", "sft")
+VARIANTS = ("off", "on", "dmd", "sft", "paired")
 
 
 def _batch(pairs: list, idx) -> tuple:
@@ -408,7 +410,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
     log_eval(0)
     for step in range(1, args.steps + 1):
         t0 = time.time()
-        frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.batch, replace=False))
+        idx = rng.choice(len(pairs), args.batch, replace=False)
+        frame0, tasks, descs = _batch(pairs, idx)
         c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
         x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
         extra = {}
@@ -420,8 +423,12 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
         elif variant == "sft":  # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
             videos, labels = world.sft_batch(rng, args.batch, world.bench_scene_keys())
             loss = video_loss(model, videos, labels, args)
-        else:                   # App. A.2.1: generator through the Executor's sampler, then the fake score
-            x = flow.sample_ode(lambda x, t: model(x, t, c_E), x_0, args.sample_steps)
+        elif variant == "paired":  # the costly supervision WMSD does without: correct executions labelled with T
+            ps = [pairs[i] for i in idx]
+            videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in ps])
+            loss = video_loss(model, videos, tasks, args)
+        else:                   # App. A.2.1: the generator's output from the Executor's own states, then the fake score
+            x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
             loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
             fake_loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E, gen)
             fake_opt.zero_grad(set_to_none=True)

@@ -103,6 +103,24 @@ def test_dmd_gradient_is_zero_when_fake_equals_real_and_points_from_fake_to_real
     assert loss.item() > 0 and all(p.grad is not None for p in models.lora_parameters(fake))
 
 
+
+def test_dmd_generator_is_the_clean_estimate_at_a_detached_state_of_the_executors_trajectory(lora_model):
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0.05)
+    traj = distill.rollout(m, x0, c_E, 4)
+    x = distill.dmd_generator(m, traj, c_E, torch.Generator().manual_seed(2))
+    k = torch.randint(0, 4, (4,), generator=torch.Generator().manual_seed(2))  # the same draw
+    xs, ts = traj
+    x_k, t_k = xs[k, torch.arange(4)], ts[k]
+    with torch.no_grad():
+        expect = x_k + (1 - t_k).reshape(-1, 1, 1, 1, 1) * m(x_k, t_k, c_E)
+    torch.testing.assert_close(x.detach(), expect)
+    assert not traj[0].requires_grad          # the trajectory is data; the gradient is this one call's
+    x.pow(2).mean().backward()
+    assert all(p.grad is not None for p in _lora_B(m))
+    m.zero_grad(set_to_none=True)
+    _perturb(m, 0)
+
 def test_proposition_1_bound_on_linear_fields():
     """Teacher v'(x) = A x (L = ||A||_2), student v(x) = A x + delta. With shared x_0 both terminal laws are
     Gaussians with equal covariance, so W2 = ||Delta_1|| exactly; the bound says W2 <= e^L eps, with

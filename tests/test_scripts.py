@@ -8,12 +8,12 @@ from conftest import ROOT, run
 
 
 def test_distill_stage_smoke(tiny_ckpt, tmp_path):
-    r = run("train.py", "--stage", "distill", "--variant", "off,on,dmd", "--init", tiny_ckpt, "--steps", "2",
+    r = run("train.py", "--stage", "distill", "--variant", "off,on,dmd,paired", "--init", tiny_ckpt, "--steps", "2",
             "--batch", "3", "--eval_every", "2", "--eval_n", "3", "--train_pairs", "6", "--sample_steps", "2",
             "--log_every", "1", "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr
     summary = json.load(open(tmp_path / "distill_summary.json"))
-    assert set(summary["variants"]) == {"off", "on", "dmd"}
+    assert set(summary["variants"]) == {"off", "on", "dmd", "paired"}
     assert all([e["step"] for e in ev] == [0, 2] for ev in summary["variants"].values())
     for f in ("fig4_left.png", "rollouts_on.gif", "executor_dmd.pt"):
         assert (tmp_path / f).exists(), f
