@@ -185,7 +185,7 @@ EXPERIMENTS = {
     "beta_0": ("rl", ["--beta_d", "0"]),
     "err_0": ("rl", ["--error_rate", "0"]),                                # gain over the Demonstrator vs VLM errors
     "err_0.5": ("rl", ["--error_rate", "0.5"]),
-    "distill": ("distill", ["--variant", "off,on,dmd,sft"]),               # Fig. 4 left; Tab. 1's +SFT row
+    "distill": ("distill", ["--variant", "off,on,dmd,sft,paired"]),        # Fig. 4 left; Tab. 1's SFT rows
 }
 BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
@@ -322,6 +322,8 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
         rows.setdefault("Base (T)", []).append(ev(base, "task"))
         rows.setdefault("Base + SFT (T)", []).append(
             ev(models.load_checkpoint(os.path.join(dirs[("distill", seed)], "executor_sft.pt"))[0], "task"))
+        rows.setdefault("Base + paired SFT (T; correct executions: a reference, not WMSD)", []).append(
+            ev(models.load_checkpoint(os.path.join(dirs[("distill", seed)], "executor_paired.pt"))[0], "task"))
         rows.setdefault("Base + VLM (the Demonstrator: the toy VLM's D)", []).append(ev(base, "vlm"))
         for name in ("wmsd", "no_cons"):
             m = models.load_checkpoint(os.path.join(dirs[(name, seed)], "executor_awm.pt"))[0]
