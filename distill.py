@@ -147,7 +147,7 @@ def make_fake_score(model, rank: int = 8, alpha: float = 16.0):
     return fake
 
 
-def dmd_generator(model, student_traj, c_E: dict, generator=None, shard: tuple | None = None) -> torch.Tensor:
+def dmd_generator(model, student_traj, c_E: dict, generator=None) -> torch.Tensor:
     """G_theta(z, c_E) of Eqs. 21-22 for a multi-step Executor: the paper's G_theta is a one-step generator; ours
     samples in S Euler steps, so, as DMD2 does for multi-step students (Yin et al. 2024, "backward simulation"),
 
@@ -157,7 +157,7 @@ def dmd_generator(model, student_traj, c_E: dict, generator=None, shard: tuple |
     (`student_traj` = rollout(model, z, c_E, steps)). k = 0 is the literal one-step generator from noise. The
     gradient flows through this one network call (measured on the toy: 100 steps took 5.9 min when it flowed
     through all 10 Euler steps). Returns x (B, ...) with gradient."""
-    x_k, t_k = _pick_states(*student_traj, generator, shard)
+    x_k, t_k = _pick_states(*student_traj, generator)
     return _denoise(model, x_k, t_k, c_E)
 
 
