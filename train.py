@@ -412,29 +412,31 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
         t0 = time.time()
         idx = rng.choice(len(pairs), args.batch, replace=False)
         frame0, tasks, descs = _batch(pairs, idx)
-        c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
-        x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
         extra = {}
-        if variant == "off":    # Eq. 3 on the Demonstrator's states
-            loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
-                                           c_E, c_D, gen)
-        elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
-            loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, c_D, gen)
-        elif variant == "sft":  # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
+        if variant == "sft":    # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
             videos, labels = world.sft_batch(rng, args.batch, world.bench_scene_keys())
             loss = video_loss(model, videos, labels, args)
         elif variant == "paired":  # the costly supervision WMSD does without: correct executions labelled with T
             ps = [pairs[i] for i in idx]
             videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in ps])
             loss = video_loss(model, videos, tasks, args)
-        else:                   # App. A.2.1: the generator's output from the Executor's own states, then the fake score
-            x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
-            loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
-            fake_loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E, gen)
-            fake_opt.zero_grad(set_to_none=True)
-            fake_loss.backward()
-            fake_opt.step()
-            extra["fake_loss"] = fake_loss.item()
+        else:                   # the self-distillation objectives: Executor under c_E, Demonstrator under c_D
+            c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
+            x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
+            if variant == "off":    # Eq. 3 on the Demonstrator's states
+                loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
+                                               c_E, c_D, gen)
+            elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
+                loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps),
+                                              c_E, c_D, gen)
+            else:                   # App. A.2.1: G_theta from the Executor's own states, then the fake score
+                x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
+                loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
+                fake_loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E, gen)
+                fake_opt.zero_grad(set_to_none=True)
+                fake_loss.backward()
+                fake_opt.step()
+                extra["fake_loss"] = fake_loss.item()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1

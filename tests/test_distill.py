@@ -103,7 +103,6 @@ def test_dmd_gradient_is_zero_when_fake_equals_real_and_points_from_fake_to_real
     assert loss.item() > 0 and all(p.grad is not None for p in models.lora_parameters(fake))
 
 
-
 def test_dmd_generator_is_the_clean_estimate_at_a_detached_state_of_the_executors_trajectory(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)
@@ -120,6 +119,7 @@ def test_dmd_generator_is_the_clean_estimate_at_a_detached_state_of_the_executor
     assert all(p.grad is not None for p in _lora_B(m))
     m.zero_grad(set_to_none=True)
     _perturb(m, 0)
+
 
 def test_proposition_1_bound_on_linear_fields():
     """Teacher v'(x) = A x (L = ||A||_2), student v(x) = A x + delta. With shared x_0 both terminal laws are
