@@ -6,6 +6,8 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
   oracle  the error-free description    (the Demonstrator with a perfect VLM -- an upper reference)
   vague   "red square moves": who moves, not how (probes whether the base commits to *some* motion)
   empty   an empty prompt
+  goal    "red square moves to the blue circle": the goal caption of T (probes what the base learned from
+          goal-captioned pretraining clips, train.py --p_goal)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid.
@@ -35,13 +37,15 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
-CONDITIONS = ("task", "vlm", "oracle", "vague", "empty")
+CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal")
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:
     """The prompt of each pair under a condition (module docstring); vague and empty probe the base alone."""
     if condition == "vague":
         return [world.vague_caption(p.scene, p.plan_oracle) for p in pairs]
+    if condition == "goal":
+        return [world.goal_caption(p.task) for p in pairs]
     return [{"task": p.task.text, "vlm": p.d_vlm, "oracle": p.d_oracle, "empty": ""}[condition] for p in pairs]
 
 

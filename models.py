@@ -16,7 +16,8 @@ Bayes posterior over moves, which a flow model needs to *commit* to one motion w
 Without it the base blended the possible motions into smears whenever the prompt did not fix the motion (given only
 T: consistency 0.125). A plain window also pools a moving sprite's evidence into a still neighbour and drags it
 along; `evidence_by_colour` (on in the shipped base) pools a sprite pixel's evidence only over its own sprite
-(`_pool_evidence`). The README has the measurements.
+(`_pool_evidence`). `ground` (off in the shipped base) adds `Grounding`, a path from each word to a place in
+the first frame; tried with goal-captioned pretraining, it did not help (README). The README has the measurements.
 
 Latent space of the toy model: the generated frames 1..F-1 as a tensor (B, T=F-1, 3, H, W) in [-1, 1]; frame 0
 is the clean condition, not generated (as in image-to-video LTX-2, where first-frame tokens sit at t = 1 here).
@@ -121,6 +122,37 @@ class TextEncoder(nn.Module):
         return h, attend, pooled
 
 
+class Grounding(nn.Module):
+    """Words point into the first frame. Each text token queries the first frame's pixels (keys: a small conv of
+    the frame, so colour and shape), takes the attention-weighted pixel coordinates (x, y) per head and how peaked
+    the attention is, adds an embedding of them to its encoding, and one more transformer layer lets the tokens
+    combine their positions ("where is the agent, where is the target"). A real video DiT gets this from attention
+    between text and image tokens; the toy's U-Net only meets the text at its 4x4 bottleneck and in a pooled FiLM
+    vector, so without this it had no short path from "to the blue circle" to where the blue circle is."""
+
+    def __init__(self, dim: int, heads: int, feat: int = 16):
+        super().__init__()
+        self.heads, self.feat = heads, feat
+        self.frame = nn.Sequential(nn.Conv2d(3, feat, 3, padding=1), nn.SiLU(), nn.Conv2d(feat, feat, 3, padding=1))
+        self.q = nn.Linear(dim, heads * feat)
+        self.where = nn.Sequential(nn.Linear(3 * heads, dim), nn.SiLU(), nn.Linear(dim, dim))
+        self.ln1, self.attn, self.ln2 = nn.LayerNorm(dim), Attention(dim, heads), nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, 2 * dim), nn.GELU(), nn.Linear(2 * dim, dim))
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, tokens, attend, frame0, coords):
+        """tokens (B, L, D), attend (B, L), frame0 (B, 3, H, W), coords (2, H, W) -> tokens (B, L, D)."""
+        B, L, _ = tokens.shape
+        keys = self.frame(frame0).flatten(2)                                              # (B, feat, HW)
+        q = self.q(tokens).reshape(B, L, self.heads, self.feat)
+        a = torch.softmax(torch.einsum("blhf,bfp->blhp", q, keys) / math.sqrt(self.feat), dim=-1)
+        xy = torch.einsum("blhp,cp->blhc", a, coords.flatten(1))                          # (B, L, heads, 2)
+        peak = a.max(dim=-1).values[..., None]                                            # (B, L, heads, 1)
+        h = tokens + self.where(torch.cat([xy, peak], -1).flatten(2))
+        h = h + self.attn(self.ln1(h), key_mask=attend)
+        return self.norm(h + self.mlp(self.ln2(h)))
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # the (2+1)D U-Net
 # ----------------------------------------------------------------------------------------------------------------
@@ -184,6 +216,7 @@ class ToyConfig:
     evidence: int = 0        # > 0: add to each DNA filter's logits the log-likelihood of x_t under each of its 9
                              # moves, summed over this many pixels square around the pixel (0: off)
     evidence_by_colour: bool = False  # pool a sprite pixel's evidence only over its own sprite (its colour)
+    ground: bool = False     # text tokens point into the first frame (Grounding) before the U-Net reads them
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -206,6 +239,8 @@ class ToyVideoFlow(nn.Module):
         self.text = TextEncoder(len(world.VOCAB), cfg.text_dim, cfg.text_layers, cfg.heads, cfg.max_words)
         self.t_mlp = nn.Sequential(nn.Linear(E, E), nn.SiLU(), nn.Linear(E, E))
         self.text_proj = nn.Linear(cfg.text_dim, E)
+        if cfg.ground:
+            self.ground = Grounding(cfg.text_dim, cfg.heads)
         self.frame_emb = nn.Parameter(torch.randn(cfg.frames, E) * 0.02)
         # per-frame embedding: where a sprite is at frame f depends on f times what the text says (min(f, k) v),
         # so (text, t, frame) meet in a two-layer MLP rather than a sum
@@ -251,6 +286,10 @@ class ToyVideoFlow(nn.Module):
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
         B, T, C, H, W = x_t.shape
         tokens, mask, pooled = self.text(c["ids"])
+        if self.cfg.ground:
+            tokens = self.ground(tokens, mask, c["frame0"], self.coords)
+            words = (c["ids"] > 0)[..., None]
+            pooled = (tokens * words).sum(1) / words.sum(1).clamp(min=1)
         e = self.t_mlp(timestep_embedding(t, self.cfg.emb_dim)) + self.text_proj(pooled)      # (B, E)
         emb = self.emb_out(torch.cat([e[:, None].expand(B, T, -1), self.frame_emb[None, :T].expand(B, T, -1)],
                                      dim=-1)).reshape(B * T, -1)                               # (B*T, E)

@@ -94,6 +94,8 @@ class Args:
     evidence_by_colour: bool = True
     """toy base: pool a sprite pixel's evidence only over its own sprite (same colour), a background pixel's not at
     all, instead of the whole window (models.ToyVideoFlow._pool_evidence); --no-evidence_by_colour: plain window"""
+    ground: bool = False
+    """toy base: text tokens point into the first frame before the U-Net reads them (models.Grounding)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
@@ -295,7 +297,7 @@ def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> to
 def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     model = models.make_model("toy", width=args.width, evidence=args.evidence,
-                              evidence_by_colour=args.evidence_by_colour)
+                              evidence_by_colour=args.evidence_by_colour, ground=args.ground)
     ema = copy.deepcopy(model).requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (

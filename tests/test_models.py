@@ -153,3 +153,30 @@ def test_evidence_by_colour_does_not_drag_a_still_neighbour():
             assert (x1_hat - x_1).abs().max().item() < 0.05, err_blue
         else:
             assert err_blue > 0.5, err_blue
+
+
+def test_grounding_makes_the_text_encoding_depend_on_where_things_are_in_the_first_frame():
+    torch.manual_seed(0)
+    frame = np.zeros((1, world.H, world.W, 3), np.uint8)
+    moved = frame.copy()
+    frame[0, 2:5, 2:5] = world.COLOURS["red"]
+    moved[0, 10:13, 11:14] = world.COLOURS["red"]
+    for ground in (False, True):
+        m = models.make_model("toy", ground=ground).eval()
+        enc = []
+        for f in (frame, moved):
+            c = m.condition(f, ["red square moves to the left edge"])
+            tokens, mask, pooled = m.text(c["ids"])
+            if ground:
+                tokens = m.ground(tokens, mask, c["frame0"], m.coords)
+            enc.append(tokens)
+        differs = not torch.allclose(enc[0], enc[1])
+        assert differs == ground, f"ground={ground}: the words' encoding {'ignores' if ground else 'reads'} the frame"
+    # and forward() reads the grounded words: changing the grounding changes the velocity
+    x_t, t = torch.randn(1, *m.latent_shape()), torch.tensor([0.5])
+    for p in m.parameters():  # the output layer is zero at init; give it weights so the text reaches the velocity
+        p.data.add_(0.05 * torch.randn_like(p))
+    with torch.no_grad():
+        before = m(x_t, t, c)
+        m.ground.where[-1].bias.add_(1.0)
+        assert not torch.allclose(before, m(x_t, t, c))
