@@ -10,7 +10,9 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
           goal-captioned pretraining clips, train.py --p_goal)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
-three scores; its successes/valid sum the per-video mean over videos with all three judgments valid.
+three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
+(ours, not a paper column) is the share of videos that solve the task *and* are plausible: the task judge reads only
+the end state, so a smear that reaches the goal passes it.
 
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
@@ -58,6 +60,11 @@ def score_table(judgments: list[dict]) -> dict:
     valid["avg"] = len(full)
     out = {k: succ[k] / valid[k] if valid[k] else float("nan") for k in KEYS}
     out["avg"] = float(np.mean([out[k] for k in KEYS]))
+    # ours, not a paper column: the task solved *by a plausible video* (task and consistency both yes), over videos
+    # where both were judged. The task judge looks only at the end state, so a smear that reaches the goal passes it
+    both = [j for j in judgments if j["task"].yes is not None and j["consistency"].yes is not None]
+    succ["solved"], valid["solved"] = sum(bool(j["task"].yes and j["consistency"].yes) for j in both), len(both)
+    out["solved"] = succ["solved"] / len(both) if both else float("nan")
     out.update(successes=succ, valid=valid, failures={k: len(judgments) - valid[k] for k in valid}, n=len(judgments))
     return out
 
@@ -109,6 +116,9 @@ def format_table(res: dict, title: str = "") -> str:
         s = res["successes"][k]
         rows.append(f"| {k:11s} | {res[k]:.3f} | {s if isinstance(s, int) else round(s, 1)}/{res['valid'][k]} | "
                     f"{res['failures'][k]} ({100 * res['failures'][k] / max(res['n'], 1):.1f}%) |")
+    if "solved" in res:
+        rows.append(f"solved by a plausible video (task and consistency both yes): {res['solved']:.3f} "
+                    f"({res['successes']['solved']}/{res['valid']['solved']})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
