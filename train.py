@@ -95,7 +95,8 @@ class Args:
     """toy base: pool a sprite pixel's evidence only over its own sprite (same colour), a background pixel's not at
     all, instead of the whole window (models.ToyVideoFlow._pool_evidence); --no-evidence_by_colour: plain window"""
     ground: bool = False
-    """toy base: text tokens point into the first frame before the U-Net reads them (models.Grounding)"""
+    """toy base: text tokens point into the first frame before the U-Net reads them (models.Grounding); tried with
+    --p_goal 0.25, it did not help (README), so it is off"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
