@@ -109,7 +109,8 @@ class TextEncoder(nn.Module):
         self.norm = nn.LayerNorm(dim)
 
     def forward(self, ids):
-        """ids (B, L) -> tokens (B, L, dim), mask (B, L) True for real words, pooled (B, dim) masked mean."""
+        """ids (B, L) -> tokens (B, L, dim), attend (B, L) the keys to attend to (the real words, and slot 0 so an
+        empty caption has one), pooled (B, dim) the mean over the real words."""
         mask = ids > 0
         attend = mask.clone()
         attend[:, 0] = True  # an empty caption still has one key to attend to (its padding slot)
@@ -118,8 +119,13 @@ class TextEncoder(nn.Module):
             h = h + attn(ln1(h), key_mask=attend)
             h = h + mlp(ln2(h))
         h = self.norm(h)
-        pooled = (h * mask[..., None]).sum(1) / mask.sum(1, keepdim=True).clamp(min=1)
-        return h, attend, pooled
+        return h, attend, word_mean(h, ids)
+
+
+def word_mean(h: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """Mean of the token encodings h (B, L, dim) over the real words (ids > 0): (B, dim); 0 for an empty caption."""
+    words = (ids > 0)[..., None]
+    return (h * words).sum(1) / words.sum(1).clamp(min=1)
 
 
 class Grounding(nn.Module):
@@ -290,8 +296,7 @@ class ToyVideoFlow(nn.Module):
         tokens, mask, pooled = self.text(c["ids"])
         if self.cfg.ground:
             tokens = self.ground(tokens, mask, c["frame0"], self.coords)
-            words = (c["ids"] > 0)[..., None]
-            pooled = (tokens * words).sum(1) / words.sum(1).clamp(min=1)
+            pooled = word_mean(tokens, c["ids"])
         e = self.t_mlp(timestep_embedding(t, self.cfg.emb_dim)) + self.text_proj(pooled)      # (B, E)
         emb = self.emb_out(torch.cat([e[:, None].expand(B, T, -1), self.frame_emb[None, :T].expand(B, T, -1)],
                                      dim=-1)).reshape(B * T, -1)                               # (B*T, E)
