@@ -8,6 +8,8 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
   empty   an empty prompt
   goal    "red square moves to the blue circle": the goal caption of T (probes what the base learned from
           goal-captioned pretraining clips, train.py --p_goal)
+  instruction  "[red square]: move left 2 up 1 for 3 frames": the toy VLM's D in the task's form
+          (world.instruction_form; the prompt of the README's positive control, train.py --executor_prompt)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
@@ -39,7 +41,7 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
-CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal")
+CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction")
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:
@@ -48,6 +50,8 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
         return [world.vague_caption(p.scene, p.plan_oracle) for p in pairs]
     if condition == "goal":
         return [world.goal_caption(p.task) for p in pairs]
+    if condition == "instruction":
+        return [world.instruction_form(p.d_vlm) for p in pairs]
     return [{"task": p.task.text, "vlm": p.d_vlm, "oracle": p.d_oracle, "empty": ""}[condition] for p in pairs]
 
 

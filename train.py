@@ -17,6 +17,7 @@
   python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
   python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
   python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
+  python train.py --stage distill --variant off,on --executor_prompt instruction   # the positive control (README)
   torchrun --nproc_per_node 2 train.py --toy --threads 1             # the same run on 2 processes
 """
 from __future__ import annotations
@@ -104,6 +105,10 @@ class Args:
     """objective(s), comma-separated: off (Eq. 3) | on (Eqs. 5/11) | dmd (App. A.2.1) | sft (the +SFT baseline,
     Sec. 4.4) | paired (SFT on the simulator's correct videos of the training tasks, labelled T: the paired
     task-execution supervision the paper avoids needing -- a reference, not WMSD)"""
+    executor_prompt: str = "task"
+    """the Executor's text: task (T, the paper's c_E) | instruction (the toy VLM's D rewritten in the task's
+    "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
+    control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -244,6 +249,13 @@ def parse_args(argv=None) -> Args:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
         p.error("--model and --judge other than toy are wired into the rl stage only")
+    if args.executor_prompt not in ("task", "instruction"):
+        p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from task, instruction")
+    control_stage = args.stage == "rl" or (args.stage == "distill"
+                                           and set(args.variant.split(",")) <= {"off", "on", "dmd"})
+    if args.executor_prompt != "task" and (not control_stage or args.model != "toy" or args.dataset):
+        p.error("--executor_prompt instruction is a toy control for the objectives: --stage rl, or --stage distill "
+                "with --variant off, on or dmd (the SFT baselines train on T); toy model and toy VLM pairs only")
     if args.eval_n > 200:
         p.error("--eval_n must be at most 200 (the bench size)")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -344,18 +356,21 @@ def pretrain(args: Args) -> dict:
 VARIANTS = ("off", "on", "dmd", "sft", "paired")
 
 
-def _batch(pairs: list, idx) -> tuple:
-    """(first frames uint8 (B, H, W, 3), tasks T, the toy VLM's descriptions D) of the chosen pairs."""
+def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
+    """(first frames uint8 (B, H, W, 3), the Executor's prompts, the toy VLM's descriptions D) of the chosen pairs.
+    The Executor's prompt is the task T, or with executor_prompt="instruction" D in the task's form."""
     ps = [pairs[i] for i in idx]
-    return np.stack([p.frame0 for p in ps]), [p.task.text for p in ps], [p.d_vlm for p in ps]
+    prompts = bench.prompts_for(ps, executor_prompt)
+    return np.stack([p.frame0 for p in ps]), prompts, [p.d_vlm for p in ps]
 
 
 def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> dict:
-    """Bench scores of the Executor given T -- or, with demonstrator=True, of the Demonstrator (adapters off)
-    given the toy VLM's D. Same noise seed (0) every time, so curves compare like with like."""
+    """Bench scores of the Executor given T (or its --executor_prompt) -- or, with demonstrator=True, of the
+    Demonstrator (adapters off) given the toy VLM's D. Same noise seed (0) every time, so curves compare like with
+    like."""
     ctx = models.adapters_disabled(model) if demonstrator is True else contextlib.nullcontext()
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
-        res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else "task", args.eval_n, seed=0,
+        res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE)
     return res
 
@@ -368,6 +383,7 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     if not args.eval_cache or args.model != "toy":
         return evaluate_executor(model, args, demonstrator)
     key = {"base": bench.file_digest(args.init or models.SHIPPED_BASE), "demonstrator": demonstrator,
+           **({} if demonstrator or args.executor_prompt == "task" else {"executor_prompt": args.executor_prompt}),
            "eval_n": args.eval_n, "error_rate": args.error_rate, "sample_steps": args.sample_steps,
            "judge": args.judge, "judge_path": args.judge_path}
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
@@ -385,8 +401,8 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
 
 def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> tuple:
     """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
-    steps and at the last. at_0 is the base's evaluation given T: a fresh LoRA (B = 0) is the base exactly, so
-    every variant's step 0 is that one evaluation. Returns (model, list of eval records)."""
+    steps and at the last. at_0 is the base's evaluation given T (or --executor_prompt): a fresh LoRA (B = 0) is
+    the base exactly, so every variant's step 0 is that one evaluation. Returns (model, list of eval records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -414,7 +430,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
     for step in range(1, args.steps + 1):
         t0 = time.time()
         idx = rng.choice(len(pairs), args.batch, replace=False)
-        frame0, tasks, descs = _batch(pairs, idx)
+        frame0, tasks, descs = _batch(pairs, idx, args.executor_prompt)
         extra = {}
         if variant == "sft":    # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
             videos, labels = world.sft_batch(rng, args.batch, world.bench_scene_keys())
@@ -469,7 +485,8 @@ def distill_stage(args: Args) -> dict:
     print(f"Demonstrator (base given the toy VLM's D): task {demo['task']:.3f} agent {demo['agent']:.3f} "
           f"consistency {demo['consistency']:.3f}")
     variants = args.variant.split(",")
-    results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {}}
+    results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
+               "executor_prompt": args.executor_prompt}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:
             model, evals = distill_variant(args, v, pairs, logf, at_0)
@@ -490,28 +507,31 @@ def plot_fig4_left(results: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    prompt = results.get("executor_prompt", "task")
     for ax, key in zip(axes, ("task", "avg")):
         for v, evals in results["variants"].items():
             ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor, {v}")
         ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
         ax.set_xlabel("training step")
-        ax.set_ylabel(f"bench {key} score (Executor given T)")
+        ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)")
+    given = "T" if prompt == "task" else "the toy VLM's D in the task's form (positive control)"
+    fig.suptitle(f"Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)\nExecutor given {given}")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
 def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
-    """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (same noise)."""
+    """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (or its
+    --executor_prompt; same noise)."""
     from PIL import Image
     pairs = world.bench_pairs(args.error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0)
-    exe = models.generate(model, frame0, [p.task.text for p in pairs], args.sample_steps, seed=0)
+    exe = models.generate(model, frame0, bench.prompts_for(pairs, args.executor_prompt), args.sample_steps, seed=0)
     sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
     grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3): F of the model
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
@@ -709,7 +729,9 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     b = _group_batch(model, frame0, tasks, descs, args, gen, sde)
     N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
-    c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, b.descs)
+    prompts = tasks if args.executor_prompt == "task" else bench.prompts_for(
+        [SimpleNamespace(d_vlm=d) for d in b.descs], args.executor_prompt)   # the positive control's c_E
+    c_E, c_D = model.condition(frame0, prompts), model.condition(frame0, b.descs)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
@@ -867,10 +889,12 @@ def rl_stage(args: Args) -> dict:
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
     keys = ("task", "agent", "consistency", "avg", "seconds_per_video")
+    given = "T" if args.executor_prompt == "task" else "D in the task's form"
+    base_row = f"Base ({given})"
     if state is not None:
         fixed = state["fixed"]
     elif rank0:
-        fixed = {"Base (T)": base_evaluation(model, args),           # no adapters yet: the base given T
+        fixed = {base_row: base_evaluation(model, args),             # no adapters yet: the base given T
                  bench.DEMO_ROW: base_evaluation(model, args, demonstrator=True)}
         fixed = {name: {k: r[k] for k in keys} for name, r in fixed.items()}
     else:
@@ -903,12 +927,13 @@ def rl_stage(args: Args) -> dict:
                 f.writelines(l + "\n" for l in lines if json.loads(l)["step"] < first)
         say(f"resumed {state_path} at step {first - 1}")
     elif rank0:
-        base_T = fixed["Base (T)"]
+        base_T = fixed[base_row]
         evals = [{"step": 0, **{k: base_T[k] for k in keys[:4]}}]
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
-        say(f"{len(pairs)} training pairs; {_world()} process(es); base given T: task {fixed['Base (T)']['task']:.3f} "
-            f"consistency {fixed['Base (T)']['consistency']:.3f}; Demonstrator (toy VLM's D): task "
+        say(f"{len(pairs)} training pairs; {_world()} process(es); base given {given}: task "
+            f"{fixed[base_row]['task']:.3f} consistency {fixed[base_row]['consistency']:.3f}; Demonstrator (toy "
+            f"VLM's D): task "
             f"{demo['task']:.3f} consistency {demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
     logf = open(os.path.join(args.run_dir, "rl.jsonl"), log_mode) if rank0 else None
     if logf and first == 1:
@@ -958,7 +983,7 @@ def rl_stage(args: Args) -> dict:
         merged = model
         models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
     final = evaluate_executor(merged, args)
-    rows = {**fixed, f"WMSD ({args.trainer}, T)": {k: final[k] for k in keys}}
+    rows = {**fixed, f"WMSD ({args.trainer}, {given})": {k: final[k] for k in keys}}
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}

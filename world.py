@@ -184,6 +184,18 @@ def vague_caption(scene: Scene, plan: Plan) -> str:
     return "camera pans" if plan.mover == -1 else f"{scene.sprites[plan.mover].name} moves"
 
 
+def instruction_form(d: str) -> str:
+    """A description D rewritten in the task's "[agent]: instruction" form, e.g. "red square moves left 2 up 1
+    for 3 frames then stops" -> "[red square]: move left 2 up 1 for 3 frames", "camera pans right 1 for 2 frames
+    then stops" -> "[first-person view]: move right 1 for 2 frames". The same information as D (errors included) in
+    a format the base never saw in pretraining: the Executor's prompt in the README's positive control
+    (train.py --executor_prompt instruction), where c_E carries what c_D carries and only the form differs."""
+    m = re.fullmatch(r"(camera pans|(?P<agent>\w+ \w+) moves) (?P<motion>.+?)( then stops)?", d.strip())
+    if not m:
+        raise ValueError(f"{d!r} is not a description of a motion (world.describe)")
+    return f"[{m['agent'] or FIRST_PERSON}]: move {m['motion']}"
+
+
 _TASK_RE = re.compile(r"^\[(?P<agent>[^\]]+)\]:\s*(?P<rest>.+)$")
 
 

@@ -157,7 +157,11 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
         assert r.returncode == 2 and "d.jsonl line 2" in r.stderr and msg in r.stderr and not out.exists(), r.stderr
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--group_size", "1"], "--group_size must be >= 2"),
                       (["--beta_d", "-1"], "--beta_d must be >= 0"), (["--sampler", "euler"], "--sampler: unknown"),
-                      (["--adv_agg", "mean"], "--adv_agg: unknown")):
+                      (["--adv_agg", "mean"], "--adv_agg: unknown"),
+                      (["--executor_prompt", "story"], "--executor_prompt: unknown"),
+                      (["--stage", "pretrain", "--executor_prompt", "instruction"], "toy control"),
+                      (["--stage", "distill", "--variant", "on,sft", "--executor_prompt", "instruction"],
+                       "toy control")):
         r = run("train.py", *argv, "--run_dir", str(out))
         assert r.returncode == 2 and msg in r.stderr and not out.exists(), (argv, r.stderr)
 
@@ -176,6 +180,46 @@ def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settin
     other.write_bytes(open(tiny_ckpt, "rb").read() + b"\0")                       # another base file
     train.base_evaluation(model, _args(str(other), tmp_path, eval_cache=tmp_path / "cache"))
     assert len(calls) == 4 and len(os.listdir(tmp_path / "cache")) == 4
+    control = _args(tiny_ckpt, tmp_path, eval_cache=tmp_path / "cache", executor_prompt="instruction", stage="distill")
+    train.base_evaluation(model, control)                                         # another Executor prompt
+    train.base_evaluation(model, control, demonstrator=True)                      # the same Demonstrator
+    assert calls == [False, True, False, False, False] and len(os.listdir(tmp_path / "cache")) == 5
     timing = ("seconds", "seconds_per_video", "judge_seconds")
     assert {k: v for k, v in first.items() if k not in timing} == \
         {k: v for k, v in real(model, a).items() if k not in timing}              # the cached value is the value
+
+
+def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(tiny_ckpt, tmp_path, monkeypatch):
+    """The positive control's Executor prompt reaches both the training batch and the bench evaluation."""
+    pairs = train.world.bench_pairs(0.3)[:4]
+    frame0, prompts, descs = train._batch(pairs, [0, 3], "instruction")
+    assert prompts == [train.world.instruction_form(pairs[i].d_vlm) for i in (0, 3)]
+    assert descs == [pairs[i].d_vlm for i in (0, 3)] and frame0.shape[0] == 2
+    assert train._batch(pairs, [0, 3])[1] == [pairs[i].task.text for i in (0, 3)]
+    seen = []
+    monkeypatch.setattr(train.bench, "evaluate", lambda m, cond, *a, **k: seen.append(cond) or ({}, None, None))
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    train.evaluate_executor(model, _args(tiny_ckpt, tmp_path, executor_prompt="instruction", stage="distill"))
+    train.evaluate_executor(model, _args(tiny_ckpt, tmp_path, executor_prompt="instruction", stage="distill"),
+                            demonstrator=True)
+    assert seen == ["instruction", "vlm"]
+
+
+def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path, monkeypatch):
+    """In the positive control's rl stage the Executor is conditioned on D in the task's form, the Demonstrator on
+    D, and the judges judge the rollouts against T."""
+    args = _args(tiny_ckpt, tmp_path, executor_prompt="instruction")
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    train.models.add_lora(model, args.lora_rank, args.lora_alpha)
+    params = train.models.lora_parameters(model)
+    opt = torch.optim.Adam(params, lr=args.lr)
+    frame0, tasks, descs = train._batch(train.world.bench_pairs(0.3), [0, 1])
+    texts, judged = [], []
+    condition, judge = model.condition, train.judge_rollouts
+    monkeypatch.setattr(model, "condition", lambda f, t: texts.append(list(t)) or condition(f, t))
+    monkeypatch.setattr(train, "judge_rollouts", lambda v, t: judged.append(list(t)) or judge(v, t))
+    train.rl_step(1, model, opt, params, args, train.rl_config(args), frame0, tasks, descs, torch.Generator())
+    G = args.group_size
+    assert texts[:2] == [[train.world.instruction_form(d) for d in descs for _ in range(G)],
+                         [d for d in descs for _ in range(G)]]
+    assert judged == [[t for t in tasks for _ in range(G)]]

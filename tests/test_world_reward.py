@@ -48,6 +48,24 @@ def test_task_format_and_parse_round_trip(bench):
         assert world.parse_task(p.task.text) == p.task
 
 
+def test_instruction_form_carries_the_description_s_information(bench):
+    """The positive control's prompt: D's mover and motion, in the task's "[agent]: instruction" form."""
+    import models
+    tok = models.Tokenizer(world.VOCAB)
+    for p in bench:
+        form = world.instruction_form(p.d_vlm)
+        agent, rest = world.split_task(form)
+        words = p.d_vlm.split()
+        assert agent == (world.FIRST_PERSON if words[0] == "camera" else " ".join(words[:2]))
+        who = 2 if words[0] == "camera" else 3                     # "camera pans" / "red square moves"
+        assert rest == "move " + " ".join(words[who:-2])          # D's motion without "then stops"
+        assert tok.words(form)                                     # every word is in the toy vocabulary
+    assert world.instruction_form("camera pans up 2 for 1 frame then stops") == \
+        "[first-person view]: move up 2 for 1 frame"
+    with pytest.raises(ValueError, match="not a description"):
+        world.instruction_form("nothing moves")
+
+
 def test_toy_vlm_error_rate_and_oracle(bench):
     rate = np.mean([p.error != "" for p in bench])
     assert 0.2 < rate < 0.4
