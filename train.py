@@ -360,7 +360,8 @@ def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
     """(first frames uint8 (B, H, W, 3), the Executor's prompts, the toy VLM's descriptions D) of the chosen pairs.
     The Executor's prompt is the task T, or with executor_prompt="instruction" D in the task's form."""
     ps = [pairs[i] for i in idx]
-    prompts = bench.prompts_for(ps, executor_prompt)
+    prompts = ([p.task.text for p in ps] if executor_prompt == "task" else
+               [world.instruction_form(p.d_vlm) for p in ps])
     return np.stack([p.frame0 for p in ps]), prompts, [p.d_vlm for p in ps]
 
 
@@ -729,8 +730,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     b = _group_batch(model, frame0, tasks, descs, args, gen, sde)
     N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
-    prompts = tasks if args.executor_prompt == "task" else bench.prompts_for(
-        [SimpleNamespace(d_vlm=d) for d in b.descs], args.executor_prompt)   # the positive control's c_E
+    prompts = tasks if args.executor_prompt == "task" else [world.instruction_form(d) for d in b.descs]  # control
     c_E, c_D = model.condition(frame0, prompts), model.condition(frame0, b.descs)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
