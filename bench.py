@@ -52,7 +52,10 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
         return [world.goal_caption(p.task) for p in pairs]
     if condition == "instruction":
         return [world.instruction_form(p.d_vlm) for p in pairs]
-    return [{"task": p.task.text, "vlm": p.d_vlm, "oracle": p.d_oracle, "empty": ""}[condition] for p in pairs]
+    # read only the field the condition names: a real-image pair (train.load_pairs) has a task and a D, no oracle
+    field = {"task": lambda p: p.task.text, "vlm": lambda p: p.d_vlm, "oracle": lambda p: p.d_oracle,
+             "empty": lambda p: ""}[condition]
+    return [field(p) for p in pairs]
 
 
 def score_table(judgments: list[dict]) -> dict:

@@ -360,9 +360,7 @@ def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
     """(first frames uint8 (B, H, W, 3), the Executor's prompts, the toy VLM's descriptions D) of the chosen pairs.
     The Executor's prompt is the task T, or with executor_prompt="instruction" D in the task's form."""
     ps = [pairs[i] for i in idx]
-    prompts = ([p.task.text for p in ps] if executor_prompt == "task" else
-               [world.instruction_form(p.d_vlm) for p in ps])
-    return np.stack([p.frame0 for p in ps]), prompts, [p.d_vlm for p in ps]
+    return np.stack([p.frame0 for p in ps]), bench.prompts_for(ps, executor_prompt), [p.d_vlm for p in ps]
 
 
 def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> dict:
