@@ -10,6 +10,8 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
           goal-captioned pretraining clips, train.py --p_goal)
   instruction  "[red square]: move left 2 up 1 for 3 frames": the toy VLM's D in the task's form
           (world.instruction_form; the prompt of the README's positive control, train.py --executor_prompt)
+  oracle_instruction  the error-free description in the task's form (the README's second control: c_E carries
+          the right motion while the Demonstrator's D is still wrong 30% of the time)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
@@ -41,7 +43,7 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
-CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction")
+CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction")
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:
@@ -52,6 +54,8 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
         return [world.goal_caption(p.task) for p in pairs]
     if condition == "instruction":
         return [world.instruction_form(p.d_vlm) for p in pairs]
+    if condition == "oracle_instruction":
+        return [world.instruction_form(p.d_oracle) for p in pairs]
     # read only the field the condition names: a real-image pair (train.load_pairs) has a task and a D, no oracle
     field = {"task": lambda p: p.task.text, "vlm": lambda p: p.d_vlm, "oracle": lambda p: p.d_oracle,
              "empty": lambda p: ""}[condition]
@@ -88,6 +92,12 @@ def family_scores(pairs: list, judgments: list[dict], key: str = "task", group=l
     return dict(sorted(out.items()))
 
 
+def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
+    """Task score on the pairs whose toy-VLM description D is right vs wrong (whatever the condition): where the
+    Demonstrator must fail, and where an Executor that beats it (Tab. 1) would have to gain."""
+    return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
+
+
 def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
     """Agent score per agent type (paper Fig. 7 right): a sprite vs the first-person camera."""
     return family_scores(pairs, judgments, "agent",
@@ -111,7 +121,8 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
     res = score_table(judgments)
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
                seconds_per_video=seconds / max(n, 1), judge_seconds=time.time() - t1,
-               families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments))
+               families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
+               by_vlm_error=vlm_error_scores(pairs, judgments))
     return res, videos, pairs
 
 
@@ -128,6 +139,9 @@ def format_table(res: dict, title: str = "") -> str:
                     f"({res['successes']['solved']}/{res['valid']['solved']})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
+    if "by_vlm_error" in res:
+        rows.append("task where the toy VLM's D is " + ", ".join(
+            f"{g.split()[1]} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
                 f"judging {res['judge_seconds']:.1f} s")
     return "\n".join(rows)
@@ -154,8 +168,9 @@ def read_run(run_dir: str) -> dict:
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
     evals = [r for r in map(json.loads, open(path)) if r.get("eval")]
     summ = os.path.join(run_dir, "rl_summary.json")
-    fixed = json.load(open(summ))["table"] if os.path.isfile(summ) else {}
-    return {"evals": evals, "fixed": fixed}
+    summary = json.load(open(summ)) if os.path.isfile(summ) else {}
+    return {"evals": evals, "fixed": summary.get("table", {}),
+            "prompt": summary.get("args", {}).get("executor_prompt", "task")}
 
 
 def compare_runs(runs: dict, path: str | None = None) -> str:
@@ -175,13 +190,15 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
         demo = next((r["fixed"].get(DEMO_ROW) for r in data.values()
                      if r["fixed"]), None)
+        prompts = {r["prompt"] for r in data.values()}
+        given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
         for ax, key in zip(axes, ("task", "consistency")):
             for label, r in data.items():
                 ax.plot([e["step"] for e in r["evals"]], [e[key] for e in r["evals"]], marker="o", ms=3, label=label)
             if demo:
                 ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
             ax.set_xlabel("step")
-            ax.set_ylabel(f"bench {key} (Executor given T)")
+            ax.set_ylabel(f"bench {key} (Executor given {given})")
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=7)
         fig.tight_layout()

@@ -18,6 +18,7 @@
   python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
   python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
   python train.py --stage distill --variant off,on --executor_prompt instruction   # the positive control (README)
+  python train.py --toy --executor_prompt oracle_instruction --steps 300   # the second control: c_E right, D not
   torchrun --nproc_per_node 2 train.py --toy --threads 1             # the same run on 2 processes
 """
 from __future__ import annotations
@@ -108,7 +109,9 @@ class Args:
     executor_prompt: str = "task"
     """the Executor's text: task (T, the paper's c_E) | instruction (the toy VLM's D rewritten in the task's
     "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
-    control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T)"""
+    control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
+    oracle_instruction (the error-free D in that form: the README's second control, where c_E carries the right
+    motion and the Demonstrator's D is still wrong at the toy VLM's error rate)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -249,13 +252,14 @@ def parse_args(argv=None) -> Args:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
         p.error("--model and --judge other than toy are wired into the rl stage only")
-    if args.executor_prompt not in ("task", "instruction"):
-        p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from task, instruction")
+    if args.executor_prompt not in EXECUTOR_PROMPTS:
+        p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
                                            and set(args.variant.split(",")) <= {"off", "on", "dmd"})
     if args.executor_prompt != "task" and (not control_stage or args.model != "toy" or args.dataset):
-        p.error("--executor_prompt instruction is a toy control for the objectives: --stage rl, or --stage distill "
-                "with --variant off, on or dmd (the SFT baselines train on T); toy model and toy VLM pairs only")
+        p.error(f"--executor_prompt {args.executor_prompt} is a toy control for the objectives: --stage rl, or "
+                "--stage distill with --variant off, on or dmd (the SFT baselines train on T); toy model and toy "
+                "VLM pairs only")
     if args.eval_n > 200:
         p.error("--eval_n must be at most 200 (the bench size)")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -354,11 +358,14 @@ def pretrain(args: Args) -> dict:
 # ================================================================================================================
 
 VARIANTS = ("off", "on", "dmd", "sft", "paired")
+# Args.executor_prompt -> how the tables and plots name it; each is a bench.prompts_for condition of that name
+EXECUTOR_PROMPTS = {"task": "T", "instruction": "the toy VLM's D in the task's form",
+                    "oracle_instruction": "the error-free D in the task's form"}
 
 
 def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
     """(first frames uint8 (B, H, W, 3), the Executor's prompts, the toy VLM's descriptions D) of the chosen pairs.
-    The Executor's prompt is the task T, or with executor_prompt="instruction" D in the task's form."""
+    The Executor's prompt is the task T, or a control's prompt (Args.executor_prompt)."""
     ps = [pairs[i] for i in idx]
     return np.stack([p.frame0 for p in ps]), bench.prompts_for(ps, executor_prompt), [p.d_vlm for p in ps]
 
@@ -515,7 +522,7 @@ def plot_fig4_left(results: dict, path: str) -> None:
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    given = "T" if prompt == "task" else "the toy VLM's D in the task's form (positive control)"
+    given = EXECUTOR_PROMPTS[prompt] + ("" if prompt == "task" else " (a control)")
     fig.suptitle(f"Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)\nExecutor given {given}")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -721,14 +728,15 @@ def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool) -> Simpl
 
 
 def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen,
-            teacher=None) -> dict:
+            teacher=None, prompts=None) -> dict:
     """One Executor iteration of Alg. 1 (Alg. 2 lines 18-25) on tasks_per_step (image, T, D), each repeated
     group_size times; split across processes under torchrun. `teacher`: a trained Demonstrator (Alg. 2); None =
-    the base with adapters off."""
+    the base with adapters off. `prompts`: the Executor's text per task (a control's, Args.executor_prompt);
+    None = T, the paper's c_E. The judges judge T either way."""
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     b = _group_batch(model, frame0, tasks, descs, args, gen, sde)
     N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
-    prompts = tasks if args.executor_prompt == "task" else [world.instruction_form(d) for d in b.descs]  # control
+    prompts = tasks if prompts is None else [q for q in prompts for _ in range(args.group_size)][rows]
     c_E, c_D = model.condition(frame0, prompts), model.condition(frame0, b.descs)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
@@ -887,7 +895,7 @@ def rl_stage(args: Args) -> dict:
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
     keys = ("task", "agent", "consistency", "avg", "seconds_per_video")
-    given = "T" if args.executor_prompt == "task" else "D in the task's form"
+    given = EXECUTOR_PROMPTS[args.executor_prompt]
     base_row = f"Base ({given})"
     if state is not None:
         fixed = state["fixed"]
@@ -939,12 +947,15 @@ def rl_stage(args: Args) -> dict:
     loop_start = time.time()
     for step in range(first, args.steps + 1):
         t0 = time.time()
-        frame0, tasks, descs = _batch(pairs, rng.choice(len(pairs), args.tasks_per_step, replace=False))
+        idx = rng.choice(len(pairs), args.tasks_per_step, replace=False)
+        frame0, tasks, descs = _batch(pairs, idx)
+        prompts = None if args.executor_prompt == "task" else _batch(pairs, idx, args.executor_prompt)[1]
         try:
             if args.alternate > 0 and step % args.alternate == 0:
                 rec = demonstrator_round(step, demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
             else:
-                rec = rl_step(step, model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net)
+                rec = rl_step(step, model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net,
+                              prompts=prompts)
         except TrainingFault as e:
             last = f"the last good state {state_path} is intact" if os.path.exists(state_path) else \
                 "no state was saved yet (--save_every)"

@@ -196,6 +196,9 @@ def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(
     assert prompts == [train.world.instruction_form(pairs[i].d_vlm) for i in (0, 3)]
     assert descs == [pairs[i].d_vlm for i in (0, 3)] and frame0.shape[0] == 2
     assert train._batch(pairs, [0, 3])[1] == [pairs[i].task.text for i in (0, 3)]
+    oracle = train._batch(pairs, [0, 3], "oracle_instruction")
+    assert oracle[1] == [train.world.instruction_form(pairs[i].d_oracle) for i in (0, 3)]
+    assert oracle[2] == descs                                      # the Demonstrator keeps the toy VLM's D
     seen = []
     monkeypatch.setattr(train.bench, "evaluate", lambda m, cond, *a, **k: seen.append(cond) or ({}, None, None))
     model = train.models.load_checkpoint(tiny_ckpt)[0]
@@ -205,21 +208,27 @@ def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(
     assert seen == ["instruction", "vlm"]
 
 
-def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path, monkeypatch):
-    """In the positive control's rl stage the Executor is conditioned on D in the task's form, the Demonstrator on
-    D, and the judges judge the rollouts against T."""
-    args = _args(tiny_ckpt, tmp_path, executor_prompt="instruction")
+@pytest.mark.parametrize("executor_prompt", ["instruction", "oracle_instruction"])
+def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path, monkeypatch, executor_prompt):
+    """In a control's rl stage the Executor is conditioned on its prompt (the toy VLM's or the error-free D in the
+    task's form), the Demonstrator on the toy VLM's D, and the judges judge the rollouts against T."""
+    args = _args(tiny_ckpt, tmp_path, executor_prompt=executor_prompt)
     model = train.models.load_checkpoint(tiny_ckpt)[0]
     train.models.add_lora(model, args.lora_rank, args.lora_alpha)
     params = train.models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr)
-    frame0, tasks, descs = train._batch(train.world.bench_pairs(0.3), [0, 1])
+    pairs = train.world.bench_pairs(0.3)
+    wrong = next(i for i, p in enumerate(pairs) if p.d_vlm != p.d_oracle)        # a pair where the two D differ
+    frame0, tasks, descs = train._batch(pairs, [0, wrong])
+    prompts = train._batch(pairs, [0, wrong], executor_prompt)[1]
     texts, judged = [], []
     condition, judge = model.condition, train.judge_rollouts
     monkeypatch.setattr(model, "condition", lambda f, t: texts.append(list(t)) or condition(f, t))
     monkeypatch.setattr(train, "judge_rollouts", lambda v, t: judged.append(list(t)) or judge(v, t))
-    train.rl_step(1, model, opt, params, args, train.rl_config(args), frame0, tasks, descs, torch.Generator())
+    train.rl_step(1, model, opt, params, args, train.rl_config(args), frame0, tasks, descs, torch.Generator(),
+                  prompts=prompts)
     G = args.group_size
-    assert texts[:2] == [[train.world.instruction_form(d) for d in descs for _ in range(G)],
+    field = "d_vlm" if executor_prompt == "instruction" else "d_oracle"
+    assert texts[:2] == [[train.world.instruction_form(getattr(pairs[i], field)) for i in (0, wrong) for _ in range(G)],
                          [d for d in descs for _ in range(G)]]
     assert judged == [[t for t in tasks for _ in range(G)]]

@@ -73,6 +73,17 @@ def test_toy_vlm_error_rate_and_oracle(bench):
     assert all(p.d_vlm == p.d_oracle for p in world.bench_pairs(0.0))
 
 
+def test_executing_the_toy_vlm_s_description_fails_where_it_is_wrong(bench):
+    """The simulator executing D: every pair whose D is right is solved, (nearly) none whose D is wrong -- so
+    bench.vlm_error_scores splits the bench where a Demonstrator must fail, and the toy VLM's errors are real."""
+    import bench as bench_mod
+    judgments = [reward.judge_all(_video(p.scene, p.plan_vlm), p.task.text) for p in bench]
+    split = bench_mod.vlm_error_scores(bench, judgments)
+    n_wrong = sum(p.error != "" for p in bench)
+    assert split["D right"] == [len(bench) - n_wrong] * 2
+    assert split["D wrong"][1] == n_wrong and split["D wrong"][0] <= 0.1 * n_wrong, split
+
+
 def test_the_vlm_reads_the_frame_not_the_simulator(bench):
     for p in bench[:50]:
         read = world.read_sprites(p.frame0)
