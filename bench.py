@@ -198,9 +198,10 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
             if demo:
                 ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
             ax.set_xlabel("step")
-            ax.set_ylabel(f"bench {key} (Executor given {given})")
+            ax.set_ylabel(f"bench {key}")
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=7)
+        fig.suptitle(f"Executor given {given}", fontsize=10)
         fig.tight_layout()
         fig.savefig(path, dpi=120)
         plt.close(fig)
