@@ -139,9 +139,7 @@ def format_table(res: dict, title: str = "") -> str:
                     f"({res['successes']['solved']}/{res['valid']['solved']})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
-    if "by_vlm_error" in res:
-        rows.append("task where the toy VLM's D is " + ", ".join(
-            f"{g.split()[1]} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+    rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
                 f"judging {res['judge_seconds']:.1f} s")
     return "\n".join(rows)

@@ -711,9 +711,9 @@ def _mean(x: torch.Tensor) -> float:
     return float(torch.nanmean(x)) if torch.isfinite(x).any() else float("nan")
 
 
-def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool) -> SimpleNamespace:
+def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool, prompts=None) -> SimpleNamespace:
     """Alg. 1 lines 3-5's batch: each (image, T, D) repeated group_size times, this process's rows of it, and the
-    step's sampling noise. The noise is drawn for the whole batch on the CPU generator (so every process, on any
+    step's sampling noise. `prompts`: the Executor's text per task (a control's, Args.executor_prompt); None = T. The noise is drawn for the whole batch on the CPU generator (so every process, on any
     device, draws the same numbers) and this process keeps its rows, moved to the network's device."""
     G, N = args.group_size, len(tasks) * args.group_size
     off, n = _shard(N)
@@ -724,6 +724,7 @@ def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool) -> Simpl
         N=N, n=n, rows=rows, shard=(off, N), groups=torch.arange(N) // G,
         frame0=np.repeat(frame0, G, axis=0)[rows], tasks=[t for t in tasks for _ in range(G)][rows],
         descs=[d for d in descs for _ in range(G)][rows],
+        prompts=[q for q in (tasks if prompts is None else prompts) for _ in range(G)][rows],
         x_0=x_0[rows].to(dev), noises=None if noises is None else noises[:, rows].to(dev))
 
 
@@ -734,10 +735,9 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     the base with adapters off. `prompts`: the Executor's text per task (a control's, Args.executor_prompt);
     None = T, the paper's c_E. The judges judge T either way."""
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
-    b = _group_batch(model, frame0, tasks, descs, args, gen, sde)
+    b = _group_batch(model, frame0, tasks, descs, args, gen, sde, prompts)
     N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
-    prompts = tasks if prompts is None else [q for q in prompts for _ in range(args.group_size)][rows]
-    c_E, c_D = model.condition(frame0, prompts), model.condition(frame0, b.descs)
+    c_E, c_D = model.condition(frame0, b.prompts), model.condition(frame0, b.descs)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
@@ -949,7 +949,8 @@ def rl_stage(args: Args) -> dict:
         t0 = time.time()
         idx = rng.choice(len(pairs), args.tasks_per_step, replace=False)
         frame0, tasks, descs = _batch(pairs, idx)
-        prompts = None if args.executor_prompt == "task" else _batch(pairs, idx, args.executor_prompt)[1]
+        prompts = None if args.executor_prompt == "task" else bench.prompts_for([pairs[i] for i in idx],
+                                                                                 args.executor_prompt)
         try:
             if args.alternate > 0 and step % args.alternate == 0:
                 rec = demonstrator_round(step, demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
