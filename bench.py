@@ -21,6 +21,7 @@ the end state, so a smear that reaches the goal passes it.
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
+  python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --report results            # the whole reproduction report (README "Reproduction report")
   python bench.py --report /tmp/r --quick     # the same plumbing with tiny runs, in a few minutes
 """
@@ -172,37 +173,43 @@ def read_run(run_dir: str) -> dict:
 
 
 def compare_runs(runs: dict, path: str | None = None) -> str:
-    """Curves of several rl runs (label -> run dir) on one figure -- task and consistency vs step, the
-    Demonstrator as a dashed line (the paper's Fig. 5 layout) -- and a markdown table of start, peak and end."""
-    data = {label: read_run(d) for label, d in runs.items()}
+    """Curves of several rl runs on one figure -- task and consistency vs step, the Demonstrator as a dashed line
+    (the paper's Fig. 5 layout) -- and a markdown table of start, peak and end. `runs` maps a label to a run dir, or
+    to a list of run dirs (one per seed): then each curve is the mean over seeds with a min-max band (curve_band),
+    each cell mean ± sd, and the peak is the mean curve's."""
+    groups = {label: [read_run(d) for d in ([ds] if isinstance(ds, str) else ds)] for label, ds in runs.items()}
+
+    def cell(xs):
+        return f"{xs[0]:.3f}" if len(xs) == 1 else fmt(xs)
+
     rows = ["| run | task @0 | task peak (step) | task @end | consistency @end | agent @end |", "|---|---|---|---|---|---|"]
-    for label, r in data.items():
-        ev = r["evals"]
-        peak = max(ev, key=lambda e: e["task"])
-        rows.append(f"| {label} | {ev[0]['task']:.3f} | {peak['task']:.3f} ({peak['step']}) | {ev[-1]['task']:.3f} | "
-                    f"{ev[-1]['consistency']:.3f} | {ev[-1]['agent']:.3f} |")
+    for label, rs in groups.items():
+        evs = [r["evals"] for r in rs]
+        steps = sorted(set.intersection(*[{e["step"] for e in ev} for ev in evs]))
+        mean_task = {s: np.mean([next(e["task"] for e in ev if e["step"] == s) for ev in evs]) for s in steps}
+        peak = max(steps, key=lambda s: mean_task[s])
+        end = [ev[-1] for ev in evs]
+        rows.append(f"| {label} | {cell([ev[0]['task'] for ev in evs])} | {mean_task[peak]:.3f} ({peak}) | "
+                    f"{cell([e['task'] for e in end])} | {cell([e['consistency'] for e in end])} | "
+                    f"{cell([e['agent'] for e in end])} |")
     if path:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-        demo = next((r["fixed"].get(DEMO_ROW) for r in data.values()
-                     if r["fixed"]), None)
-        prompts = {r["prompt"] for r in data.values()}
+        plt, fig, axes = _plot(2, width=5.5)
+        demo = next((r["fixed"].get(DEMO_ROW) for rs in groups.values() for r in rs if r["fixed"]), None)
+        prompts = {r["prompt"] for rs in groups.values() for r in rs}
         given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
+        seeds = {len(rs) for rs in groups.values()}
         for ax, key in zip(axes, ("task", "consistency")):
-            for label, r in data.items():
-                ax.plot([e["step"] for e in r["evals"]], [e[key] for e in r["evals"]], marker="o", ms=3, label=label)
+            for label, rs in groups.items():
+                curve_band(ax, [r["evals"] for r in rs], key, label)
             if demo:
                 ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
             ax.set_xlabel("step")
             ax.set_ylabel(f"bench {key}")
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=7)
-        fig.suptitle(f"Executor given {given}", fontsize=10)
-        fig.tight_layout()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
+        band = "" if seeds == {1} else "; mean over seeds, min-max band"
+        fig.suptitle(f"Executor given {given}{band}", fontsize=10)
+        _save(plt, fig, path)
     return "\n".join(rows)
 
 
@@ -525,8 +532,9 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
-    p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR", default=None,
-                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png)")
+    p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR[,RUN_DIR...]", default=None,
+                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png); several "
+                        "comma-separated dirs under one label are seeds: mean, sd and a min-max band")
     p.add_argument("--report", metavar="OUT_DIR", default=None,
                    help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
                         "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
@@ -553,10 +561,11 @@ def main(argv=None):
         return
     if a.compare:
         try:
-            runs = dict(item.split("=", 1) for item in a.compare)
+            runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
             print(compare_runs(runs, a.png))
         except (ValueError, FileNotFoundError) as e:
-            print(f"error: --compare: {e} (give LABEL=RUN_DIR pairs of finished rl runs)", file=sys.stderr)
+            print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of finished rl runs; several dirs "
+                  "are seeds of one setting)", file=sys.stderr)
             sys.exit(2)
         return
     if not 1 <= a.n <= 200:

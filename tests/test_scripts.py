@@ -105,5 +105,10 @@ def test_compare_runs_on_fake_runs(tmp_path):
     table = bench.compare_runs({"A": str(tmp_path / "a"), "B": str(tmp_path / "b")}, str(tmp_path / "cmp.png"))
     assert "| A | 0.100 | 0.300 (10) | 0.200 |" in table and "| B | 0.100 | 0.100 (0) | 0.050 |" in table
     assert (tmp_path / "cmp.png").stat().st_size > 1000
+    # two seeds of one setting: cells are mean ± sd, the peak is the mean curve's (0.15 at step 10: (0.3 + 0.0) / 2)
+    table = bench.compare_runs({"A+B": [str(tmp_path / "a"), str(tmp_path / "b")]}, str(tmp_path / "band.png"))
+    assert "| A+B | 0.100 ± 0.000 | 0.150 (10) | 0.125 ± 0.106 | 0.900 ± 0.000 |" in table
+    r = run("bench.py", "--compare", f"A={tmp_path / 'a'},{tmp_path / 'b'}", "--png", str(tmp_path / "cli.png"))
+    assert r.returncode == 0 and "0.125 ± 0.106" in r.stdout and (tmp_path / "cli.png").stat().st_size > 1000
     r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
     assert r.returncode == 2 and "no rl.jsonl" in r.stderr
