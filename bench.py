@@ -22,6 +22,7 @@ the end state, so a smear that reaches the goal passes it.
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
+  python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --report results            # the whole reproduction report (README "Reproduction report")
   python bench.py --report /tmp/r --quick     # the same plumbing with tiny runs, in a few minutes
 """
@@ -35,6 +36,7 @@ import time
 import numpy as np
 import torch
 
+import flow
 import models
 import reward
 import world
@@ -125,6 +127,69 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
                by_vlm_error=vlm_error_scores(pairs, judgments))
     return res, videos, pairs
+
+
+def switched_field(model, c_a: dict, c_b: dict, t_switch: float):
+    """The velocity field v(x_t, t | c_A) for t < t_switch and v(x_t, t | c_B) from t_switch on (bench.handoff)."""
+    return lambda x, t: model(x, t, c_a if float(t[0]) < t_switch else c_b)
+
+
+def handoff(model, cond_a: str, cond_b: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
+            steps: int = 10) -> dict:
+    """Where in the flow is the motion decided? (a diagnostic of ours, not a paper experiment)
+
+    For each k = 0 .. steps, one bench video per pair whose Euler steps 0 .. k-1 follow v(x_t, t | c_A) and steps
+    k .. steps-1 follow v(x_t, t | c_B): the prompt switches from A to B at t_k = k / steps. The noise x_0 is
+    evaluate()'s, so k = 0 is evaluate(cond_b) and k = steps is evaluate(cond_a). With A = task, B = vlm: how late
+    can the Demonstrator still take over the base's own start given T and solve the task -- after that switch time
+    the Demonstrator's velocity at the Executor's states no longer carries *where to go*, only how to get there.
+
+    Also, along the unswitched A trajectories (x_{t_0} .. x_{t_{steps-1}}), Eq. 4's discrepancy at each grid state,
+    l(t_k) = || v(x_{t_k}, t_k | c_A) - v(x_{t_k}, t_k | c_B) ||^2 (mean over dimensions and pairs): the
+    per-time target on-policy distillation (Eqs. 5, 11) regresses when A is c_E and B is c_D.
+    Returns {"switch": [t_k], "task"/"agent"/"consistency"/"solved": [score per k], "task_per_pair": [[yes per
+    pair] per k], "discrepancy": [l(t_k)], ...}; `kept` in the printed table: of the pairs A alone solves (k = steps),
+    the share still solved with the switch at t_k."""
+    pairs = world.bench_pairs(error_rate)[:n]
+    frame0 = np.stack([p.frame0 for p in pairs])
+    c_a = model.condition(frame0, prompts_for(pairs, cond_a))
+    c_b = model.condition(frame0, prompts_for(pairs, cond_b))
+    x_0 = torch.randn(n, *model.latent_shape(), generator=torch.Generator().manual_seed(seed))  # models.generate's
+    ts = flow.time_grid(steps)
+    out = {"cond_a": cond_a, "cond_b": cond_b, "n": n, "seed": seed, "steps": steps, "error_rate": error_rate,
+           "switch": ts.tolist(), **{k: [] for k in (*KEYS, "solved", "task_per_pair")}}
+    with torch.no_grad():
+        for k in range(steps + 1):
+            videos = model.decode(flow.sample_ode(switched_field(model, c_a, c_b, float(ts[k])), x_0, steps), frame0)
+            judgments = [reward.judge_all(vid, p.task.text) for vid, p in zip(videos, pairs)]
+            res = score_table(judgments)
+            for key in (*KEYS, "solved"):
+                out[key].append(res[key])
+            out["task_per_pair"].append([j["task"].yes for j in judgments])   # True / False / None per pair
+            print(f"switch {cond_a} -> {cond_b} at t = {float(ts[k]):.1f}: task {res['task']:.3f} "
+                  f"consistency {res['consistency']:.3f} solved {res['solved']:.3f}", flush=True)
+        xs, _ = flow.sample_ode(lambda x, t: model(x, t, c_a), x_0, steps, return_trajectory=True)
+        out["discrepancy"] = [float((model(xs[k], ts[k].expand(n), c_a) - model(xs[k], ts[k].expand(n), c_b))
+                                    .pow(2).mean()) for k in range(steps)]
+    return out
+
+
+def plot_handoff(res: dict, path: str) -> None:
+    """Left: the bench scores against the switch time t_k; right: Eq. 4's discrepancy along A's trajectories."""
+    plt, fig, (ax, ax2) = _plot(2, width=4.6)
+    for key in ("task", "solved", "consistency"):
+        ax.plot(res["switch"], res[key], marker="o", ms=3, label=key)
+    ax.set_xlabel(f"switch time t_k: {res['cond_a']} before, {res['cond_b']} from it on")
+    ax.set_ylabel("bench score")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax2.plot(res["switch"][:-1], res["discrepancy"], marker="o", ms=3)
+    ax2.set_xlabel("t on the unswitched trajectories")
+    ax2.set_ylabel(f"|| v(. | {res['cond_a']}) - v(. | {res['cond_b']}) ||^2 (Eq. 4)")
+    ax2.grid(alpha=0.3)
+    fig.suptitle(f"{res.get('checkpoint', '')}: {res['n']} bench pairs, noise seed {res['seed']}", fontsize=10)
+    _save(plt, fig, path)
 
 
 def format_table(res: dict, title: str = "") -> str:
@@ -535,6 +600,9 @@ def main(argv=None):
     p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR[,RUN_DIR...]", default=None,
                    help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png); several "
                         "comma-separated dirs under one label are seeds: mean, sd and a min-max band")
+    p.add_argument("--handoff", metavar="A,B", default=None,
+                   help="instead of one condition: switch the prompt from condition A to B after k of the Euler steps, "
+                        "k = 0..steps, and judge each (where in the flow the motion is decided; bench.handoff)")
     p.add_argument("--report", metavar="OUT_DIR", default=None,
                    help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
                         "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
@@ -574,6 +642,11 @@ def main(argv=None):
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
         p.error(f"--steps must be >= 1, got {a.steps}")
+    if a.handoff is not None:
+        conds = a.handoff.split(",")
+        bad = [c for c in conds if c not in CONDITIONS]
+        if len(conds) != 2 or bad:
+            p.error(f"--handoff wants A,B with A and B among {', '.join(CONDITIONS)}; got {a.handoff!r}")
     torch.set_num_threads(a.threads)
     try:
         model, _ = models.load_checkpoint(a.checkpoint)
@@ -581,6 +654,24 @@ def main(argv=None):
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     model.eval()
+    if a.handoff is not None:
+        res = handoff(model, *conds, n=a.n, seed=a.seed, error_rate=a.error_rate, steps=a.steps)
+        res["checkpoint"] = a.checkpoint or "shipped base"
+        own = [i for i, y in enumerate(res["task_per_pair"][-1]) if y]   # the pairs A alone solves
+        print(f"| switch t_k | task | agent | consistency | solved | kept: of the {len(own)} pairs {conds[0]} alone "
+              f"solves | Eq. 4 at t_k on {conds[0]}'s trajectories |")
+        print("|---|---|---|---|---|---|---|")
+        for k, t in enumerate(res["switch"]):
+            d = f"{res['discrepancy'][k]:.4f}" if k < len(res["discrepancy"]) else "-"
+            kept = sum(bool(res["task_per_pair"][k][i]) for i in own)
+            print(f"| {t:.1f} | {res['task'][k]:.3f} | {res['agent'][k]:.3f} | {res['consistency'][k]:.3f} | "
+                  f"{res['solved'][k]:.3f} | {kept}/{len(own)} | {d} |")
+        if a.png:
+            plot_handoff(res, a.png)
+            print(f"wrote {a.png}")
+        if a.json:
+            print(json.dumps(res))
+        return
     res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps)
     res["checkpoint"] = a.checkpoint or "shipped base"
     print(format_table(res, f"checkpoint={res['checkpoint']} "))

@@ -72,6 +72,8 @@ def test_help_lists_every_flag_with_its_doc():
 def test_bad_input_gives_one_clear_error(tmp_path):
     r = run("bench.py", "--condition", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
+    r = run("bench.py", "--handoff", "task,bogus")
+    assert r.returncode == 2 and "--handoff wants A,B" in r.stderr
     r = run("train.py", "--stage", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
     r = run("train.py", "--steps", "0")
@@ -112,3 +114,37 @@ def test_compare_runs_on_fake_runs(tmp_path):
     assert r.returncode == 0 and "0.125 ± 0.106" in r.stdout and (tmp_path / "cli.png").stat().st_size > 1000
     r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
     assert r.returncode == 2 and "no rl.jsonl" in r.stderr
+
+
+def test_handoff_switches_the_prompt_at_the_grid_time(tiny_ckpt, tmp_path):
+    """bench.handoff's sampler: switching at t = 0 is B's ODE, at t = 1 A's, in between neither; the endpoints of
+    handoff() score as evaluate() does with the same noise."""
+    import numpy as np
+    import torch
+
+    import bench
+    import flow
+    import models
+    import world
+    model, _ = models.load_checkpoint(tiny_ckpt)
+    pairs = world.bench_pairs(0.3)[:3]
+    frame0 = np.stack([p.frame0 for p in pairs])
+    c_a = model.condition(frame0, bench.prompts_for(pairs, "task"))
+    c_b = model.condition(frame0, bench.prompts_for(pairs, "oracle"))
+    x_0 = torch.randn(3, *model.latent_shape(), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        only = {"a": flow.sample_ode(lambda x, t: model(x, t, c_a), x_0, 4),
+                "b": flow.sample_ode(lambda x, t: model(x, t, c_b), x_0, 4)}
+        sw = {s: flow.sample_ode(bench.switched_field(model, c_a, c_b, s), x_0, 4) for s in (0.0, 0.5, 1.0)}
+    assert torch.equal(sw[0.0], only["b"]) and torch.equal(sw[1.0], only["a"])
+    assert not torch.equal(sw[0.5], only["a"]) and not torch.equal(sw[0.5], only["b"])
+    res = bench.handoff(model, "task", "oracle", n=3, seed=0, steps=2)
+    assert res["switch"] == [0.0, 0.5, 1.0] and len(res["discrepancy"]) == 2 and res["discrepancy"][0] > 0
+    for k, cond in ((0, "oracle"), (2, "task")):
+        ev = bench.evaluate(model, cond, n=3, seed=0, steps=2)[0]
+        assert all(res[key][k] == ev[key] for key in ("task", "agent", "consistency", "solved"))
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--handoff", "task,oracle", "--n", "3", "--steps", "2", "--json",
+            "--png", str(tmp_path / "h.png"))
+    assert r.returncode == 0, r.stderr
+    assert "| 0.5 |" in r.stdout and "kept: of the" in r.stdout and (tmp_path / "h.png").stat().st_size > 1000
+    assert json.loads(r.stdout.splitlines()[-1])["task"] == res["task"]
