@@ -36,6 +36,7 @@ import time
 import numpy as np
 import torch
 
+import distill
 import flow
 import models
 import reward
@@ -145,8 +146,9 @@ def handoff(model, cond_a: str, cond_b: str, n: int = 200, seed: int = 0, error_
     the Demonstrator's velocity at the Executor's states no longer carries *where to go*, only how to get there.
 
     Also, along the unswitched A trajectories (x_{t_0} .. x_{t_{steps-1}}), Eq. 4's discrepancy at each grid state,
-    l(t_k) = || v(x_{t_k}, t_k | c_A) - v(x_{t_k}, t_k | c_B) ||^2 (mean over dimensions and pairs): the
-    per-time target on-policy distillation (Eqs. 5, 11) regresses when A is c_E and B is c_D.
+    l(t_k) = || v(x_{t_k}, t_k | c_A) - v(x_{t_k}, t_k | c_B) ||^2 (distill.discrepancy, averaged over pairs): the
+    per-time target on-policy distillation (Eqs. 5, 11) regresses when A is c_E and B is c_D. `model` is one network
+    for both prompts (a bench checkpoint has its LoRA merged, so distill's adapters-off teacher is the same net).
     Returns {"switch": [t_k], "task"/"agent"/"consistency"/"solved": [score per k], "task_per_pair": [[yes per
     pair] per k], "discrepancy": [l(t_k)], ...}; `kept` in the printed table: of the pairs A alone solves (k = steps),
     the share still solved with the switch at t_k."""
@@ -154,13 +156,17 @@ def handoff(model, cond_a: str, cond_b: str, n: int = 200, seed: int = 0, error_
     frame0 = np.stack([p.frame0 for p in pairs])
     c_a = model.condition(frame0, prompts_for(pairs, cond_a))
     c_b = model.condition(frame0, prompts_for(pairs, cond_b))
-    x_0 = torch.randn(n, *model.latent_shape(), generator=torch.Generator().manual_seed(seed))  # models.generate's
+    x_0 = models.seeded_noise(model, n, seed)   # evaluate()'s noise
     ts = flow.time_grid(steps)
     out = {"cond_a": cond_a, "cond_b": cond_b, "n": n, "seed": seed, "steps": steps, "error_rate": error_rate,
            "switch": ts.tolist(), **{k: [] for k in (*KEYS, "solved", "task_per_pair")}}
     with torch.no_grad():
+        xs, _ = flow.sample_ode(lambda x, t: model(x, t, c_a), x_0, steps, return_trajectory=True)  # A alone, k = steps
+        out["discrepancy"] = [float(distill.discrepancy(model, xs[k], ts[k].expand(n), c_a, c_b).mean())
+                              for k in range(steps)]
         for k in range(steps + 1):
-            videos = model.decode(flow.sample_ode(switched_field(model, c_a, c_b, float(ts[k])), x_0, steps), frame0)
+            x_1 = xs[-1] if k == steps else flow.sample_ode(switched_field(model, c_a, c_b, float(ts[k])), x_0, steps)
+            videos = model.decode(x_1, frame0)
             judgments = [reward.judge_all(vid, p.task.text) for vid, p in zip(videos, pairs)]
             res = score_table(judgments)
             for key in (*KEYS, "solved"):
@@ -168,9 +174,6 @@ def handoff(model, cond_a: str, cond_b: str, n: int = 200, seed: int = 0, error_
             out["task_per_pair"].append([j["task"].yes for j in judgments])   # True / False / None per pair
             print(f"switch {cond_a} -> {cond_b} at t = {float(ts[k]):.1f}: task {res['task']:.3f} "
                   f"consistency {res['consistency']:.3f} solved {res['solved']:.3f}", flush=True)
-        xs, _ = flow.sample_ode(lambda x, t: model(x, t, c_a), x_0, steps, return_trajectory=True)
-        out["discrepancy"] = [float((model(xs[k], ts[k].expand(n), c_a) - model(xs[k], ts[k].expand(n), c_b))
-                                    .pow(2).mean()) for k in range(steps)]
     return out
 
 

@@ -363,11 +363,15 @@ class ToyVideoFlow(nn.Module):
 
 
 @torch.no_grad()
+def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
+    """The bench's x_0 ~ N(0, I), (n, *latent_shape): item i's noise depends only on `seed` and i."""
+    return torch.randn(n, *model.latent_shape(), generator=torch.Generator().manual_seed(seed))
+
+
 def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
     """Sample one video per (first frame, prompt) with the Euler ODE sampler (Eq. 2) from seeded noise x_0.
     Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
-    g = torch.Generator().manual_seed(seed)
-    x_0 = torch.randn(len(texts), *model.latent_shape(), generator=g)
+    x_0 = seeded_noise(model, len(texts), seed)
     out = []
     for i in range(0, len(texts), batch):
         c = model.condition(frame0[i:i + batch], texts[i:i + batch])
