@@ -58,13 +58,21 @@ def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict,
 
 
 def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None,
-                 shard: tuple | None = None):
+                 shard: tuple | None = None, window: tuple | None = None):
     """One random grid state per sample: k ~ U{0 .. S-1} (the final state t = 1 is never an input of the sampler).
     xs (S+1, B, ...) -> x (B, ...), t (B,). shard = (offset, total): these B samples are rows offset.. of a batch of
-    `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard)."""
+    `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard).
+    window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window; the README's
+    flow windows). Without one the draws are the same as with window (0, 1)."""
     S, B = xs.shape[0] - 1, xs.shape[1]
     off, total = shard or (0, B)
-    k = torch.randint(0, S, (total,), generator=generator)[off:off + B].to(xs.device)
+    ks = torch.arange(S)
+    if window is not None:
+        t_grid = ts[:-1].detach().cpu()
+        ks = ks[(t_grid >= window[0] - 1e-6) & (t_grid < window[1] - 1e-6)]
+        if len(ks) == 0:
+            raise ValueError(f"no grid time t_k of {S} steps lies in the state window [{window[0]}, {window[1]})")
+    k = ks[torch.randint(0, len(ks), (total,), generator=generator)][off:off + B].to(xs.device)
     return xs[k, torch.arange(B, device=xs.device)].detach(), ts[k]
 
 
@@ -73,30 +81,32 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
 # ----------------------------------------------------------------------------------------------------------------
 
 def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                    shard: tuple | None = None) -> torch.Tensor:
+                    shard: tuple | None = None, window: tuple | None = None) -> torch.Tensor:
     """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
     not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
-    x_t, t = _pick_states(*teacher_traj, generator, shard)
+    x_t, t = _pick_states(*teacher_traj, generator, shard, window)
     return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 
 def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                shard: tuple | None = None) -> torch.Tensor:
+                shard: tuple | None = None, window: tuple | None = None) -> torch.Tensor:
     """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
-    gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample). Scalar."""
-    x_t, t = _pick_states(*student_traj, generator, shard)
+    gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
+    of the integral over [lo, hi) only, up to the factor hi - lo). Scalar."""
+    x_t, t = _pick_states(*student_traj, generator, shard, window)
     return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
 
 
-def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
+def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
+                   window: tuple | None = None) -> torch.Tensor:
     """Eq. 5: L_on = E_{(x_t, t) ~ p_theta(. | c_E)} l_theta(x_t, t) = E_tau int_0^1 l_theta(x_t, t) dt, on the
     Executor's own states. Its gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log
     p_theta(tau)] that moves the state distribution, and a direct regression term E[grad C_theta(tau)]. Back-
     propagating through the sampler is impractical, so on sampled states held fixed this returns the direct term
     only -- which is exactly the anchor of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
-    return anchor_loss(model, student_traj, c_E, c_D, generator)
+    return anchor_loss(model, student_traj, c_E, c_D, generator, window=window)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -139,6 +139,10 @@ class Args:
     """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
     puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
     clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
+    state_window: str = ""
+    """"LO,HI": the Demonstrator's terms -- Eq. 3 (off), Eqs. 5/11 (on, and the rl stage's anchor) -- take their
+    states only from the sampler's grid times LO <= t_k < HI (README: where the motion is decided); empty: all t.
+    r_distill (Eq. 9) still integrates over the whole trajectory"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
@@ -206,6 +210,20 @@ class Args:
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
 
 
+def state_window(args: Args) -> tuple | None:
+    """--state_window "LO,HI" -> (LO, HI) with 0 <= LO < HI <= 1, or None when empty (all t)."""
+    if not args.state_window:
+        return None
+    parts = args.state_window.split(",")
+    try:
+        lo, hi = (float(x) for x in parts)
+    except ValueError:
+        raise ValueError(f"expected two numbers LO,HI, got {args.state_window!r}") from None
+    if not 0 <= lo < hi <= 1:
+        raise ValueError(f"expected 0 <= LO < HI <= 1, got {args.state_window!r}")
+    return lo, hi
+
+
 def parse_args(argv=None) -> Args:
     """Build the command line from the dataclass: every field is a --flag with its docstring as help."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -252,6 +270,18 @@ def parse_args(argv=None) -> Args:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
         p.error("--model and --judge other than toy are wired into the rl stage only")
+    if args.state_window:
+        try:
+            window = state_window(args)
+        except ValueError as e:
+            p.error(f"--state_window: {e}")
+        if not any(window[0] <= k / args.sample_steps < window[1] for k in range(args.sample_steps)):
+            p.error(f"--state_window {args.state_window}: no grid time k/{args.sample_steps} lies in [LO, HI)")
+        used = ((args.stage == "distill" and {"off", "on"} & set(args.variant.split(",")))
+                or (args.stage == "rl" and (args.beta_d > 0 or args.executor_update == "off")))
+        if not used:
+            p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
+                    "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
     if args.executor_prompt not in EXECUTOR_PROMPTS:
         p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
@@ -450,10 +480,10 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
                 loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
-                                               c_E, c_D, gen)
+                                               c_E, c_D, gen, window=state_window(args))
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
                 loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps),
-                                              c_E, c_D, gen)
+                                              c_E, c_D, gen, state_window(args))
             else:                   # App. A.2.1: G_theta from the Executor's own states, then the fake score
                 x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
                 loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
@@ -742,7 +772,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
                 distill.rollout(model, b.x_0, c_D, args.sample_steps, demonstrator=True))
-        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, shard=b.shard)
+        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, b.shard, state_window(args))
         gnorm = _update(step, opt, params, loss, "off-policy")
         return {"loss": _mean_over_processes(loss.item()), "grad_norm": gnorm, "sample_s": time.time() - t0}
     ro, vs = _rollouts(model, c_E, b.x_0, args, b.noises)
@@ -765,8 +795,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
     for _ in range(args.inner_epochs):
         l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
-        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, shard=b.shard)
-                    if args.beta_d > 0 else None)
+        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, b.shard,
+                                        state_window(args)) if args.beta_d > 0 else None)
         loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
         gnorm = _update(step, opt, params, loss, "Executor")
     return {"loss": _mean_over_processes(loss.item()), "l_rl": _mean_over_processes(l_rl.item()),

@@ -74,6 +74,23 @@ def test_losses_are_zero_iff_executor_equals_demonstrator(lora_model, which):
     _perturb(m, 0)
 
 
+def test_state_window_draws_only_its_grid_times_and_all_t_is_the_default():
+    S, B = 10, 4000
+    xs = torch.arange(S + 1, dtype=torch.float32)[:, None, None].expand(S + 1, B, 3)   # state k holds the number k
+    ts = flow.time_grid(S)
+    g = lambda: torch.Generator().manual_seed(0)
+    x, t = distill._pick_states(xs, ts, g(), window=(0.3, 0.7))
+    assert set(x[:, 0].long().tolist()) == {3, 4, 5, 6} and torch.equal(t, ts[x[:, 0].long()])
+    # no window: every grid step but the last state, and the very draws of the window [0, 1)
+    x_all, _ = distill._pick_states(xs, ts, g())
+    assert set(x_all[:, 0].long().tolist()) == set(range(S))
+    assert torch.equal(x_all, distill._pick_states(xs, ts, g(), window=(0.0, 1.0))[0])
+    # a window is an index map on the default draws: the same as U{lo .. hi-1} drawn directly
+    assert torch.equal(x[:, 0].long(), torch.randint(3, 7, (B,), generator=g()))
+    with pytest.raises(ValueError, match="no grid time"):
+        distill._pick_states(xs, ts, g(), window=(0.31, 0.39))
+
+
 def test_on_policy_states_are_detached(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)

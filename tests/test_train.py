@@ -161,7 +161,11 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--executor_prompt", "story"], "--executor_prompt: unknown"),
                       (["--stage", "pretrain", "--executor_prompt", "instruction"], "toy control"),
                       (["--stage", "distill", "--variant", "on,sft", "--executor_prompt", "instruction"],
-                       "toy control")):
+                       "toy control"),
+                      (["--state_window", "0.7,0.3"], "--state_window: expected 0 <= LO < HI <= 1"),
+                      (["--state_window", "mid"], "--state_window: expected two numbers"),
+                      (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
+                      (["--beta_d", "0", "--state_window", "0.3,0.7"], "--state_window picks the states")):
         r = run("train.py", *argv, "--run_dir", str(out))
         assert r.returncode == 2 and msg in r.stderr and not out.exists(), (argv, r.stderr)
 
