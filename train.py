@@ -861,10 +861,12 @@ def load_state(path: str, args: Args) -> dict:
         step, saved = int(state["step"]), state["args"]
     except Exception as e:  # noqa: BLE001
         raise ValueError(f"--resume: {path!r} is corrupt: {type(e).__name__}: {str(e).splitlines()[0][:200]}") from None
-    diff = [k for k, v in dataclasses.asdict(args).items() if k not in _RESUME_FREE and saved.get(k) != v]
+    default = dataclasses.asdict(Args())   # a setting the state lacks did not exist when it was written: its default
+    diff = [k for k, v in dataclasses.asdict(args).items()
+            if k not in _RESUME_FREE and saved.get(k, default[k]) != v]
     if diff:
         raise ValueError(f"--resume: {path!r} was written with different settings: "
-                         + ", ".join(f"--{k} {saved.get(k)!r} (now {getattr(args, k)!r})" for k in diff))
+                         + ", ".join(f"--{k} {saved.get(k, default[k])!r} (now {getattr(args, k)!r})" for k in diff))
     if step >= args.steps:
         raise ValueError(f"--resume: the saved run already reached step {step} of --steps {args.steps}")
     return state

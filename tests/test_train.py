@@ -141,6 +141,14 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "1", "--run_dir", str(d)).returncode == 0
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume", "--beta_d", "0.5")
     assert r.returncode == 2 and "--beta_d 1.0 (now 0.5)" in r.stderr
+    # a state from before a setting existed resumes with that setting at its default, and only then
+    state = torch.load(d / "state.pt", weights_only=True)
+    del state["args"]["state_window"]
+    torch.save(state, d / "state.pt")
+    r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume",
+            "--state_window", "0.5,1")
+    assert r.returncode == 2 and "--state_window '' (now '0.5,1')" in r.stderr, r.stderr
+    assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume").returncode == 0
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
