@@ -23,6 +23,7 @@ the end state, so a smear that reaches the goal passes it.
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
+  python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
   python bench.py --report results            # the whole reproduction report (README "Reproduction report")
   python bench.py --report /tmp/r --quick     # the same plumbing with tiny runs, in a few minutes
 """
@@ -193,6 +194,60 @@ def plot_handoff(res: dict, path: str) -> None:
     ax2.grid(alpha=0.3)
     fig.suptitle(f"{res.get('checkpoint', '')}: {res['n']} bench pairs, noise seed {res['seed']}", fontsize=10)
     _save(plt, fig, path)
+
+
+def _spearman(a, b) -> float:
+    """Spearman's rank correlation, tied values sharing their mean rank; nan when either side is constant."""
+    def ranks(v):
+        v = np.asarray(v, dtype=float)
+        r = np.empty(len(v))
+        r[np.argsort(v, kind="stable")] = np.arange(len(v))
+        for u in np.unique(v):
+            r[v == u] = r[v == u].mean()
+        return r
+    ra, rb = ranks(a), ranks(b)
+    return float("nan") if ra.std() == 0 or rb.std() == 0 else float(np.corrcoef(ra, rb)[0, 1])
+
+
+def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, seed: int = 1,
+                  error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, chunk: int = 25) -> dict:
+    """What does r_distill's group-relative advantage reward? (a diagnostic of ours, not a paper experiment)
+
+    For each of the first n bench pairs, `group` ODE rollouts of `model` given `condition` (the Executor's prompt
+    c_E), from noise seed `seed` as the rl stage draws a group; for each rollout r_distill (Eq. 9,
+    distill.distill_reward) against the Demonstrator given the toy VLM's D, its motion (pixel-frames whose colour
+    differs from frame 0 by more than 32 levels in some channel) and the task judgment. Rewards only rank rollouts
+    within a group (Eq. 10's advantages), so every statistic is taken within each group, then averaged over groups:
+    Spearman(r_distill, -motion); Spearman(r_distill, task yes) over the groups with both outcomes and every
+    judgment valid; and in those, whether the solving rollouts' mean r_distill lies above the failing ones'.
+    Returns the statistics and the per-rollout "r_distill", "motion", "task" lists (pair-major)."""
+    pairs = world.bench_pairs(error_rate)[:n]
+    x_0 = models.seeded_noise(model, n * group, seed)
+    r_all, motion, task = [], [], []
+    with torch.no_grad():
+        for i in range(0, n, chunk):
+            ps = [p for p in pairs[i:i + chunk] for _ in range(group)]
+            frame0 = np.stack([p.frame0 for p in ps])
+            c_E = model.condition(frame0, prompts_for(ps, condition))
+            c_D = model.condition(frame0, [p.d_vlm for p in ps])
+            traj = flow.sample_ode(lambda x, t: model(x, t, c_E), x_0[i * group:(i * group + len(ps))], steps,
+                                   return_trajectory=True)
+            r_all += distill.distill_reward(model, traj, c_E, c_D).tolist()
+            videos = model.decode(traj[0][-1], frame0).astype(int)
+            motion += (np.abs(videos[:, 1:] - videos[:, :1]).max(-1) > 32).sum((1, 2, 3)).tolist()
+            task += [reward.judge_task(v.astype(np.uint8), p.task.text).yes for v, p in zip(videos, ps)]
+    groups = [slice(j * group, (j + 1) * group) for j in range(n)]
+    rho_still = np.array([_spearman(r_all[g], -np.array(motion[g])) for g in groups])
+    mixed = [g for g in groups if None not in task[g] and 0 < sum(task[g]) < group]
+    rho_task = [_spearman(r_all[g], task[g]) for g in mixed]
+    mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
+    higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
+    ok = ~np.isnan(rho_still)
+    return {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps,
+            "rho_still": float(rho_still[ok].mean()), "still_positive": float((rho_still[ok] > 0).mean()),
+            "rho_task": float(np.mean(rho_task)) if mixed else float("nan"), "mixed_groups": len(mixed),
+            "solving_higher": float(np.mean(higher)) if mixed else float("nan"),
+            "r_distill": r_all, "motion": motion, "task": task}
 
 
 def format_table(res: dict, title: str = "") -> str:
@@ -606,6 +661,12 @@ def main(argv=None):
     p.add_argument("--handoff", metavar="A,B", default=None,
                    help="instead of one condition: switch the prompt from condition A to B after k of the Euler steps, "
                         "k = 0..steps, and judge each (where in the flow the motion is decided; bench.handoff)")
+    p.add_argument("--rank_rdistill", action="store_true",
+                   help="instead of one video per pair: --group rollouts per pair given --condition (the Executor's "
+                        "prompt), and what r_distill (Eq. 9) ranks high within a group: stillness, or solving the "
+                        "task (bench.rank_rdistill)")
+    p.add_argument("--group", type=int, default=8, help="with --rank_rdistill: rollouts per pair (train.py's "
+                   "--group_size)")
     p.add_argument("--report", metavar="OUT_DIR", default=None,
                    help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
                         "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
@@ -645,6 +706,10 @@ def main(argv=None):
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
         p.error(f"--steps must be >= 1, got {a.steps}")
+    if a.group < 2:
+        p.error(f"--group must be >= 2 (a rank needs two rollouts), got {a.group}")
+    if a.handoff is not None and a.rank_rdistill:
+        p.error("--handoff and --rank_rdistill are two different diagnostics: give one")
     if a.handoff is not None:
         conds = a.handoff.split(",")
         bad = [c for c in conds if c not in CONDITIONS]
@@ -672,6 +737,19 @@ def main(argv=None):
         if a.png:
             plot_handoff(res, a.png)
             print(f"wrote {a.png}")
+        if a.json:
+            print(json.dumps(res))
+        return
+    if a.rank_rdistill:
+        res = rank_rdistill(model, a.condition, a.n, a.group, a.seed, a.error_rate, a.steps)
+        res["checkpoint"] = a.checkpoint or "shipped base"
+        print(f"{res['checkpoint']}: {a.n} pairs x {a.group} rollouts given {a.condition}, noise seed {a.seed}; "
+              f"r_distill against the toy VLM's D")
+        print(f"within-group Spearman(r_distill, -motion): {res['rho_still']:.3f}, above 0 in "
+              f"{res['still_positive']:.0%} of groups")
+        print(f"within-group Spearman(r_distill, task yes): {res['rho_task']:.3f} over the {res['mixed_groups']} "
+              f"groups with both outcomes; the solving rollouts' mean r_distill is the higher in "
+              f"{res['solving_higher']:.0%} of them")
         if a.json:
             print(json.dumps(res))
         return

@@ -148,3 +148,44 @@ def test_handoff_switches_the_prompt_at_the_grid_time(tiny_ckpt, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "| 0.5 |" in r.stdout and "kept: of the" in r.stdout and (tmp_path / "h.png").stat().st_size > 1000
     assert json.loads(r.stdout.splitlines()[-1])["task"] == res["task"]
+
+
+def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
+    """bench.rank_rdistill: Spearman against hand-made ranks (ties shared), and its per-rollout r_distill, motion and
+    task judgment are those of the group's own rollouts, recomputed here from the same noise."""
+    import numpy as np
+    import torch
+
+    import bench
+    import distill
+    import flow
+    import models
+    import reward
+    import world
+    assert bench._spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert bench._spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    tied = np.corrcoef([0, 1, 2, 3], [0.5, 0.5, 2.5, 2.5])[0, 1]   # the two ties share ranks 0.5 and 2.5
+    assert bench._spearman([1, 2, 3, 4], [0, 0, 1, 1]) == pytest.approx(tied)
+    assert np.isnan(bench._spearman([1, 2, 3], [5, 5, 5]))
+    model, _ = models.load_checkpoint(tiny_ckpt)
+    res = bench.rank_rdistill(model, "task", n=3, group=4, seed=1, steps=2, chunk=2)
+    assert len(res["r_distill"]) == len(res["motion"]) == len(res["task"]) == 12
+    p = world.bench_pairs(0.3)[2]                              # the third pair's group, rows 8..11
+    frame0 = np.stack([p.frame0] * 4)
+    c_E, c_D = model.condition(frame0, [p.task.text] * 4), model.condition(frame0, [p.d_vlm] * 4)
+    with torch.no_grad():
+        traj = flow.sample_ode(lambda x, t: model(x, t, c_E), models.seeded_noise(model, 12, 1)[8:], 2,
+                               return_trajectory=True)
+        r = distill.distill_reward(model, traj, c_E, c_D)
+        videos = model.decode(traj[0][-1], frame0)
+    assert np.allclose(res["r_distill"][8:], r.numpy(), atol=1e-6)
+    moved = (np.abs(videos[:, 1:].astype(int) - videos[:, :1]).max(-1) > 32).sum((1, 2, 3))
+    assert res["motion"][8:] == moved.tolist()
+    assert res["task"][8:] == [reward.judge_task(v, p.task.text).yes for v in videos]
+    assert -1 <= res["rho_still"] <= 1 and 0 <= res["still_positive"] <= 1
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--rank_rdistill", "--n", "2", "--group", "3", "--steps", "2",
+            "--json")
+    assert r.returncode == 0, r.stderr
+    assert "Spearman(r_distill, -motion)" in r.stdout and json.loads(r.stdout.splitlines()[-1])["group"] == 3
+    r = run("bench.py", "--rank_rdistill", "--group", "1")
+    assert r.returncode == 2 and "--group must be >= 2" in r.stderr
