@@ -50,11 +50,28 @@ def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict, teach
         return (model if teacher is None else teacher)(x_t, t, c_D)
 
 
-def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict, teacher=None) -> torch.Tensor:
+def discrepancy(model, x_t: torch.Tensor, t: torch.Tensor, c_E: dict, c_D: dict, teacher=None,
+                motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 4: l_theta(x_t, t; c_E, c_D) = || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     x_t (B, ...), t (B,) -> (B,), mean over latent dimensions (see the module docstring). Gradient flows into the
-    Executor's velocity only; the Demonstrator's is a target."""
-    return (model(x_t, t, c_E) - teacher_velocity(model, x_t, t, c_D, teacher)).pow(2).flatten(1).mean(1)
+    Executor's velocity only; the Demonstrator's is a target. motion_weight: see `squared_error`."""
+    return squared_error(model(x_t, t, c_E), teacher_velocity(model, x_t, t, c_D, teacher), x_t, t, c_D,
+                         motion_weight)
+
+
+def squared_error(v_E: torch.Tensor, v_D: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor, c_D: dict,
+                  motion_weight: float = 1.0) -> torch.Tensor:
+    """Eq. 4's || v_E - v_D ||^2 as a mean over latent dimensions, (B,). With motion_weight w != 1 (ours, not the
+    paper's; toy model only, train.py --distill_motion_weight) a pixel the Demonstrator moves weighs w times the
+    others, as pretraining's loss weighs moving pixels (train.video_loss): a pixel whose Demonstrator clean estimate
+    x̂_1 = x_t + (1 - t) v_D differs from the first frame. In pixel space the still background, about 99% of the
+    dimensions, otherwise outweighs the sprite that should move."""
+    d = (v_E - v_D).pow(2)
+    if motion_weight != 1.0:
+        x_hat = x_t + (1 - t).view(-1, *[1] * (x_t.dim() - 1)) * v_D
+        moving = (x_hat - c_D["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05     # (B, T, 1, H, W)
+        d = d * (1 + (motion_weight - 1) * moving.float())
+    return d.flatten(1).mean(1)
 
 
 def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator | None = None,
@@ -81,32 +98,33 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
 # ----------------------------------------------------------------------------------------------------------------
 
 def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                    shard: tuple | None = None, window: tuple | None = None) -> torch.Tensor:
+                    shard: tuple | None = None, window: tuple | None = None,
+                    motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
     not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
     x_t, t = _pick_states(*teacher_traj, generator, shard, window)
-    return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
+    return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
 
 
 def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                shard: tuple | None = None, window: tuple | None = None) -> torch.Tensor:
+                shard: tuple | None = None, window: tuple | None = None, motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
     of the integral over [lo, hi) only, up to the factor hi - lo). Scalar."""
     x_t, t = _pick_states(*student_traj, generator, shard, window)
-    return discrepancy(model, x_t, t, c_E, c_D, teacher).mean()
+    return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
 
 
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
-                   window: tuple | None = None) -> torch.Tensor:
+                   window: tuple | None = None, motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 5: L_on = E_{(x_t, t) ~ p_theta(. | c_E)} l_theta(x_t, t) = E_tau int_0^1 l_theta(x_t, t) dt, on the
     Executor's own states. Its gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log
     p_theta(tau)] that moves the state distribution, and a direct regression term E[grad C_theta(tau)]. Back-
     propagating through the sampler is impractical, so on sampled states held fixed this returns the direct term
     only -- which is exactly the anchor of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
-    return anchor_loss(model, student_traj, c_E, c_D, generator, window=window)
+    return anchor_loss(model, student_traj, c_E, c_D, generator, window=window, motion_weight=motion_weight)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -115,7 +133,7 @@ def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
 
 @torch.no_grad()
 def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False,
-                   student_v: torch.Tensor | None = None, teacher=None) -> torch.Tensor:
+                   student_v: torch.Tensor | None = None, teacher=None, motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 9: r_distill(tau) = - int_0^1 || sg[v_theta(x_t, t | c_E)] - v_theta'(x_t, t | c_D) ||^2 dt
     on an Executor trajectory, as the left Riemann sum on the sampler's grid:
 
@@ -131,9 +149,10 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
     for k in range(S):
         t = ts[k].expand(B)
         if student_v is None:
-            l_k = discrepancy(model, xs[k], t, c_E, c_D, teacher)
+            l_k = discrepancy(model, xs[k], t, c_E, c_D, teacher, motion_weight)
         else:
-            l_k = (student_v[k] - teacher_velocity(model, xs[k], t, c_D, teacher)).pow(2).flatten(1).mean(1)
+            l_k = squared_error(student_v[k], teacher_velocity(model, xs[k], t, c_D, teacher), xs[k], t, c_D,
+                                motion_weight)
         terms.append(-(ts[k + 1] - ts[k]) * l_k)
     terms = torch.stack(terms, dim=1)  # (B, S)
     return terms if per_step else terms.sum(1)

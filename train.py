@@ -143,6 +143,10 @@ class Args:
     """"LO,HI": the Demonstrator's terms -- Eq. 3 (off), Eqs. 5/11 (on, and the rl stage's anchor) -- take their
     states only from the sampler's grid times LO <= t_k < HI (README: where the motion is decided); empty: all t.
     r_distill (Eq. 9) still integrates over the whole trajectory"""
+    distill_motion_weight: float = 1.0
+    """Eq. 4's squared error in the Demonstrator's terms (Eqs. 3, 5, 9, 11) with the pixels the Demonstrator moves
+    weighed this many times the others, as pretraining weighs moving pixels (--motion_weight); 1 = the paper's plain
+    norm. Ours, toy model only (distill.squared_error; README)"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
@@ -282,6 +286,15 @@ def parse_args(argv=None) -> Args:
         if not used:
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
+    if args.distill_motion_weight <= 0:
+        p.error(f"--distill_motion_weight must be > 0, got {args.distill_motion_weight}")
+    if args.distill_motion_weight != 1 and args.model != "toy":
+        p.error("--distill_motion_weight weighs pixels against the first frame: toy model only")
+    if args.distill_motion_weight != 1 and not (
+            (args.stage == "distill" and {"off", "on"} & set(args.variant.split(",")))
+            or (args.stage == "rl" and (args.beta_d > 0 or args.lambda_distill > 0 or args.executor_update == "off"))):
+        p.error("--distill_motion_weight weighs Eq. 4 in Eqs. 3, 5, 9, 11: it needs --stage distill with --variant "
+                "off or on, or --stage rl with the anchor or r_distill on")
     if args.executor_prompt not in EXECUTOR_PROMPTS:
         p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
@@ -480,10 +493,11 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
                 loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
-                                               c_E, c_D, gen, window=state_window(args))
+                                               c_E, c_D, gen, window=state_window(args),
+                                               motion_weight=args.distill_motion_weight)
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
                 loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps),
-                                              c_E, c_D, gen, state_window(args))
+                                              c_E, c_D, gen, state_window(args), args.distill_motion_weight)
             else:                   # App. A.2.1: G_theta from the Executor's own states, then the fake score
                 x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
                 loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
@@ -772,7 +786,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
                 distill.rollout(model, b.x_0, c_D, args.sample_steps, demonstrator=True))
-        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, b.shard, state_window(args))
+        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, b.shard, state_window(args),
+                                       args.distill_motion_weight)
         gnorm = _update(step, opt, params, loss, "off-policy")
         return {"loss": _mean_over_processes(loss.item()), "grad_norm": gnorm, "sample_s": time.time() - t0}
     ro, vs = _rollouts(model, c_E, b.x_0, args, b.noises)
@@ -781,7 +796,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
     local = judge_rollouts(videos, tasks)
-    local["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher)
+    local["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher,
+                                               motion_weight=args.distill_motion_weight)
                         if args.lambda_distill > 0 else torch.zeros(n))
     rewards = {k: _gather(v) for k, v in local.items()}
     for k in ("task", "consistency"):
@@ -796,7 +812,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     for _ in range(args.inner_epochs):
         l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
         l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, b.shard,
-                                        state_window(args)) if args.beta_d > 0 else None)
+                                        state_window(args), args.distill_motion_weight) if args.beta_d > 0 else None)
         loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
         gnorm = _update(step, opt, params, loss, "Executor")
     return {"loss": _mean_over_processes(loss.item()), "l_rl": _mean_over_processes(l_rl.item()),

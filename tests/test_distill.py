@@ -91,6 +91,24 @@ def test_state_window_draws_only_its_grid_times_and_all_t_is_the_default():
         distill._pick_states(xs, ts, g(), window=(0.31, 0.39))
 
 
+def test_motion_weight_weighs_the_pixels_the_demonstrator_moves():
+    """squared_error: weight w on the pixels whose Demonstrator clean estimate x_t + (1 - t) v_D differs from the
+    first frame, 1 elsewhere; w = 1 is Eq. 4's plain mean."""
+    B, T, C, H, W = 2, 2, 3, 4, 4
+    frame0 = torch.zeros(B, C, H, W)
+    x_t, t = torch.zeros(B, T, C, H, W), torch.tensor([0.5, 0.0])
+    v_D = torch.zeros(B, T, C, H, W)
+    v_D[0, 1, :, 2, 3] = 1.0           # sample 0: the Demonstrator moves one pixel of frame 2 (x̂_1 = 0.5 there)
+    v_E = v_D + 0.1                    # the Executor is off by 0.1 everywhere ...
+    v_E[1, 0, 0, 0, 0] = 1.1           # ... and sample 1 by 1.1 at one value; its Demonstrator moves nothing
+    c_D = {"frame0": frame0}
+    plain = distill.squared_error(v_E, v_D, x_t, t, c_D)
+    n = T * C * H * W
+    assert torch.allclose(plain, torch.tensor([0.01, (0.01 * (n - 1) + 1.21) / n]))
+    w = distill.squared_error(v_E, v_D, x_t, t, c_D, motion_weight=10.0)
+    assert torch.allclose(w, torch.tensor([0.01 * (n - 3 + 3 * 10) / n, plain[1].item()]))
+
+
 def test_on_policy_states_are_detached(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)

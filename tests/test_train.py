@@ -173,7 +173,10 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--state_window", "0.7,0.3"], "--state_window: expected 0 <= LO < HI <= 1"),
                       (["--state_window", "mid"], "--state_window: expected two numbers"),
                       (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
-                      (["--beta_d", "0", "--state_window", "0.3,0.7"], "--state_window picks the states")):
+                      (["--beta_d", "0", "--state_window", "0.3,0.7"], "--state_window picks the states"),
+                      (["--distill_motion_weight", "0"], "--distill_motion_weight must be > 0"),
+                      (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
+                       "--distill_motion_weight weighs Eq. 4")):
         r = run("train.py", *argv, "--run_dir", str(out))
         assert r.returncode == 2 and msg in r.stderr and not out.exists(), (argv, r.stderr)
 
