@@ -233,9 +233,10 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
             traj = flow.sample_ode(lambda x, t: model(x, t, c_E), x_0[i * group:(i * group + len(ps))], steps,
                                    return_trajectory=True)
             r_all += distill.distill_reward(model, traj, c_E, c_D).tolist()
-            videos = model.decode(traj[0][-1], frame0).astype(int)
-            motion += (np.abs(videos[:, 1:] - videos[:, :1]).max(-1) > 32).sum((1, 2, 3)).tolist()
-            task += [reward.judge_task(v.astype(np.uint8), p.task.text).yes for v, p in zip(videos, ps)]
+            videos = model.decode(traj[0][-1], frame0)
+            moved = np.abs(videos[:, 1:].astype(int) - videos[:, :1]).max(-1) > 32
+            motion += moved.sum((1, 2, 3)).tolist()
+            task += [reward.judge_task(v, p.task.text).yes for v, p in zip(videos, ps)]
     groups = [slice(j * group, (j + 1) * group) for j in range(n)]
     rho_still = np.array([_spearman(r_all[g], -np.array(motion[g])) for g in groups])
     mixed = [g for g in groups if None not in task[g] and 0 < sum(task[g]) < group]

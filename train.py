@@ -228,6 +228,13 @@ def state_window(args: Args) -> tuple | None:
     return lo, hi
 
 
+def _draws_demonstrator_states(args: Args) -> bool:
+    """Whether the run evaluates Eq. 3 or Eqs. 5/11 on sampled states: the distill stage's off/on variants, or the
+    rl stage with the anchor on (--beta_d > 0) or the off-policy Executor update."""
+    return ((args.stage == "distill" and bool({"off", "on"} & set(args.variant.split(","))))
+            or (args.stage == "rl" and (args.beta_d > 0 or args.executor_update == "off")))
+
+
 def parse_args(argv=None) -> Args:
     """Build the command line from the dataclass: every field is a --flag with its docstring as help."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -281,18 +288,15 @@ def parse_args(argv=None) -> Args:
             p.error(f"--state_window: {e}")
         if not any(window[0] <= k / args.sample_steps < window[1] for k in range(args.sample_steps)):
             p.error(f"--state_window {args.state_window}: no grid time k/{args.sample_steps} lies in [LO, HI)")
-        used = ((args.stage == "distill" and {"off", "on"} & set(args.variant.split(",")))
-                or (args.stage == "rl" and (args.beta_d > 0 or args.executor_update == "off")))
-        if not used:
+        if not _draws_demonstrator_states(args):
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
     if args.distill_motion_weight <= 0:
         p.error(f"--distill_motion_weight must be > 0, got {args.distill_motion_weight}")
     if args.distill_motion_weight != 1 and args.model != "toy":
         p.error("--distill_motion_weight weighs pixels against the first frame: toy model only")
-    if args.distill_motion_weight != 1 and not (
-            (args.stage == "distill" and {"off", "on"} & set(args.variant.split(",")))
-            or (args.stage == "rl" and (args.beta_d > 0 or args.lambda_distill > 0 or args.executor_update == "off"))):
+    if args.distill_motion_weight != 1 and not (_draws_demonstrator_states(args)
+                                                or (args.stage == "rl" and args.lambda_distill > 0)):
         p.error("--distill_motion_weight weighs Eq. 4 in Eqs. 3, 5, 9, 11: it needs --stage distill with --variant "
                 "off or on, or --stage rl with the anchor or r_distill on")
     if args.executor_prompt not in EXECUTOR_PROMPTS:
