@@ -368,6 +368,7 @@ def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
     return torch.randn(n, *model.latent_shape(), generator=torch.Generator().manual_seed(seed))
 
 
+@torch.no_grad()
 def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
     """Sample one video per (first frame, prompt) with the Euler ODE sampler (Eq. 2) from seeded noise x_0.
     Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
