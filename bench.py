@@ -103,6 +103,18 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
     return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
 
 
+def consistency_faults(judgments: list[dict]) -> dict:
+    """How many videos the toy consistency judge failed for each kind of violation (reward.CONSISTENCY_FAULTS; a
+    video can have several): what makes the videos implausible. Empty for a VLM judge, which gives no kinds."""
+    out = {}
+    for j in judgments:
+        if j["consistency"].yes is False:
+            for kind in {w.split()[0] for w in j["consistency"].why.split(", ") if w}:
+                if kind in reward.CONSISTENCY_FAULTS:
+                    out[kind] = out.get(kind, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
 def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
     """Agent score per agent type (paper Fig. 7 right): a sprite vs the first-person camera."""
     return family_scores(pairs, judgments, "agent",
@@ -127,7 +139,7 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
                seconds_per_video=seconds / max(n, 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
-               by_vlm_error=vlm_error_scores(pairs, judgments))
+               by_vlm_error=vlm_error_scores(pairs, judgments), faults=consistency_faults(judgments))
     return res, videos, pairs
 
 
@@ -265,6 +277,8 @@ def format_table(res: dict, title: str = "") -> str:
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
     rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+    if res.get("faults"):
+        rows.append("consistency failed by (videos): " + ", ".join(f"{k} {v}" for k, v in res["faults"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
                 f"judging {res['judge_seconds']:.1f} s")
     return "\n".join(rows)

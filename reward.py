@@ -200,6 +200,8 @@ def judge_consistency(video, task_text: str | None = None) -> Judgment:
     return Judgment(not bad, 3.0 - 3.0 * len(bad), why)
 
 
+CONSISTENCY_FAULTS = ("appears", "duplicate", "vanishes", "reshaped", "teleports", "smear")  # judge_consistency's kinds
+
 JUDGES = {"task": judge_task, "agent": judge_agent, "consistency": judge_consistency}
 
 

@@ -30,6 +30,15 @@ def test_denominators_count_discarded_judgments():
     assert bench.table4_cell([seed0, seed1], "avg") == "0.889 (2.7/3; 40.0%)"
 
 
+def test_consistency_faults_count_videos_per_kind():
+    def c(yes, why):
+        return {"task": J(True, 1.0), "agent": J(True, 1.0), "consistency": J(yes, 1.0 if yes else -3.0, why)}
+    judgments = [c(False, "reshaped blue, reshaped red, teleports red"), c(False, "reshaped red"), c(True, ""),
+                 c(False, "VLM"), {**c(True, ""), "consistency": reward.INVALID}]
+    # a video counts once per kind however many sprites show it; a VLM's "no" gives no kind
+    assert bench.consistency_faults(judgments) == {"reshaped": 2, "teleports": 1}
+
+
 def test_mean_and_spread_over_seeds():
     assert bench.mean_sd([1, 2, 3]) == (2.0, 1.0)
     assert bench.mean_sd([0.5]) == (0.5, 0.0)
