@@ -157,6 +157,9 @@ def test_vanishing_smear_and_new_object_are_caught():
     new = v.copy()
     new[2:, 12:15, 1:4] = world.COLOURS["yellow"]
     assert "appears yellow" in reward.judge_consistency(new).why
+    # every kind the judge names is one bench.consistency_faults counts
+    for video in (gone, smear, new):
+        assert {w.split()[0] for w in reward.judge_consistency(video).why.split(", ")} <= set(reward.CONSISTENCY_FAULTS)
 
 
 def test_first_person_pan():
