@@ -63,14 +63,12 @@ def squared_error(v_E: torch.Tensor, v_D: torch.Tensor, x_t: torch.Tensor, t: to
                   motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 4's || v_E - v_D ||^2 as a mean over latent dimensions, (B,). With motion_weight w != 1 (ours, not the
     paper's; toy model only, train.py --distill_motion_weight) a pixel the Demonstrator moves weighs w times the
-    others, as pretraining's loss weighs moving pixels (train.video_loss): a pixel whose Demonstrator clean estimate
-    x̂_1 = x_t + (1 - t) v_D differs from the first frame. In pixel space the still background, about 99% of the
-    dimensions, otherwise outweighs the sprite that should move."""
+    others, as pretraining weighs moving pixels (models.moving_pixel_weight): a pixel whose Demonstrator clean
+    estimate x̂_1 = x_t + (1 - t) v_D differs from the first frame."""
     d = (v_E - v_D).pow(2)
     if motion_weight != 1.0:
-        x_hat = x_t + (1 - t).view(-1, *[1] * (x_t.dim() - 1)) * v_D
-        moving = (x_hat - c_D["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05     # (B, T, 1, H, W)
-        d = d * (1 + (motion_weight - 1) * moving.float())
+        x_hat = x_t + flow._bcast(1 - t, x_t) * v_D                     # the Demonstrator's clean estimate of x_1
+        d = d * models.moving_pixel_weight(x_hat, c_D["frame0"], motion_weight)
     return d.flatten(1).mean(1)
 
 

@@ -362,6 +362,14 @@ class ToyVideoFlow(nn.Module):
         return (lw * w[:, None]).sum(2)
 
 
+def moving_pixel_weight(x_1: torch.Tensor, frame0: torch.Tensor, weight: float) -> torch.Tensor:
+    """Toy pixel-space latents only: `weight` on the pixels of x_1 (B, T, 3, H, W) that differ from the first frame
+    (B, 3, H, W), 1 elsewhere -> (B, T, 1, H, W). Pretraining weighs moving pixels so (train.video_loss); the
+    still background is ~99% of the dimensions and would otherwise outweigh the sprite that moves."""
+    moving = (x_1 - frame0[:, None]).abs().sum(2, keepdim=True) > 0.05                    # (B, T, 1, H, W)
+    return 1 + (weight - 1) * moving.float()
+
+
 @torch.no_grad()
 def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
     """The bench's x_0 ~ N(0, I), (n, *latent_shape): item i's noise depends only on `seed` and i."""

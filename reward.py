@@ -151,6 +151,9 @@ def judge_agent(video, task_text: str) -> Judgment:
     return _graded(min(shift - 0.75, 1.25 - spread))
 
 
+CONSISTENCY_FAULTS = ("appears", "duplicate", "vanishes", "reshaped", "teleports", "smear")  # judge_consistency's kinds
+
+
 def judge_consistency(video, task_text: str | None = None) -> Judgment:
     """Fig. 17: physically consistent? Counts violations (each kind once per sprite), yes iff none:
       appears   -- a blob of a colour that frame 0 does not have
@@ -199,8 +202,6 @@ def judge_consistency(video, task_text: str | None = None) -> Judgment:
     why = ", ".join(f"{k} {c}".strip() for k, c in sorted(bad))
     return Judgment(not bad, 3.0 - 3.0 * len(bad), why)
 
-
-CONSISTENCY_FAULTS = ("appears", "duplicate", "vanishes", "reshaped", "teleports", "smear")  # judge_consistency's kinds
 
 JUDGES = {"task": judge_task, "agent": judge_agent, "consistency": judge_consistency}
 

@@ -352,9 +352,8 @@ def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> to
     c = model.condition(videos[:, 0], captions)
     x_0 = torch.randn_like(x_1)                            # noise
     t = torch.rand(len(videos))                            # t ~ U[0, 1]
-    moving = (x_1 - c["frame0"][:, None]).abs().sum(2, keepdim=True) > 0.05        # (B, T, 1, H, W)
     w = (1 - t).clamp(min=model.cfg.min_one_minus_t).reshape(-1, 1, 1, 1, 1) ** args.loss_power \
-        * (1 + (args.motion_weight - 1) * moving.float())
+        * models.moving_pixel_weight(x_1, c["frame0"], args.motion_weight)
     return flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
 
 
