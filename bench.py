@@ -257,7 +257,8 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
     ok = ~np.isnan(rho_still)
     return {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps,
-            "rho_still": float(rho_still[ok].mean()), "still_positive": float((rho_still[ok] > 0).mean()),
+            "rho_still": float(rho_still[ok].mean()) if ok.any() else float("nan"),   # nan: no group varies
+            "still_positive": float((rho_still[ok] > 0).mean()) if ok.any() else float("nan"),
             "rho_task": float(np.mean(rho_task)) if mixed else float("nan"), "mixed_groups": len(mixed),
             "solving_higher": float(np.mean(higher)) if mixed else float("nan"),
             "r_distill": r_all, "motion": motion, "task": task}

@@ -224,6 +224,8 @@ class ToyConfig:
     evidence: int = 0        # > 0: add to each DNA filter's logits the log-likelihood of x_t under each of its 9
                              # moves, summed over this many pixels square around the pixel (0: off)
     evidence_by_colour: bool = False  # pool a sprite pixel's evidence only over its own sprite (its colour)
+    evidence_lead: bool = False  # with evidence_by_colour: a sprite's move evidence also counts the pixels it moves
+                                 # onto, and a background pixel follows the sprite beside it (_lead_evidence)
     ground: bool = False     # text tokens point into the first frame (Grounding) before the U-Net reads them
 
 
@@ -358,8 +360,37 @@ class ToyVideoFlow(nn.Module):
         is_bg = torch.exp(-(prev ** 2).sum(1, keepdim=True) / 0.25)                            # (B, 1, H, W)
         w = (1 - is_bg) * same
         w[:, ev * ev // 2] = 1                                   # the window's centre tap: the pixel itself
+        if self.cfg.evidence_lead:
+            return self._lead_evidence(ll, same, is_bg)
         lw = F_.unfold(ll, ev, padding=ev // 2).reshape(B, 9, ev * ev, H, W)
         return (lw * w[:, None]).sum(2)
+
+    def _lead_evidence(self, ll: torch.Tensor, same: torch.Tensor, is_bg: torch.Tensor) -> torch.Tensor:
+        """cfg.evidence_lead: the evidence for a rigid sprite move, and background pixels that follow it.
+
+        Under move m (pixel p takes its colour from p + off_m) a sprite lands on its footprint shifted by -off_m.
+        The log-likelihood of that hypothesis is the sum of ll[m] over the landing footprint (a background
+        pixel's ll is 0: the background is subtracted): the sprite's own pixels, pooled by colour as above, plus
+        the background pixels it moves onto, its leading edge. E_s(m) sums both. Without the leading edge (by
+        colour alone) a leading-edge pixel decided on its own noisy evidence, and given T sprites grew (README).
+        A background pixel p then takes its neighbouring sprite's colour by move m with that sprite's own
+        probability of m: logit E_s(m), E_s read at the sprite pixels among p's sources; the moves that leave p
+        background share the sprite's remaining mass (their colour is the same, so how they share it does not
+        matter). Marginalised so, p turns sprite exactly as often as the sprite moves onto it."""
+        B, _, H, W = ll.shape
+        ev, k = self.cfg.evidence, torch.arange(9, device=ll.device)
+
+        def taps(x):   # (B, C, H, W) -> (B, C, 9, H, W): tap j holds x at p + off_j (3x3 unfold order)
+            return F_.unfold(x, 3, padding=1).reshape(B, x.shape[1], 9, H, W)
+
+        lead = taps(ll * is_bg)[:, k, 8 - k]                # channel m: ll[m] of the pixel q - off_m, if background
+        win = F_.unfold(ll + lead, ev, padding=ev // 2).reshape(B, 9, ev * ev, H, W)
+        E = (win * ((1 - is_bg) * same)[:, None]).sum(2)     # at a sprite pixel: its sprite's E_s (B, 9, H, W)
+        src = taps(1 - is_bg)[:, 0]                          # (B, 9, H, W): is the source of move m a sprite pixel
+        E_s = (taps(E) * src[:, None]).sum(2) / src.sum(1, keepdim=True).clamp(min=1e-3)  # the sprite's E_s at p
+        rest = (torch.logsumexp(E_s + torch.log((1 - src).clamp(min=1e-6)), 1, keepdim=True)
+                - torch.log((1 - src).sum(1, keepdim=True).clamp(min=1e-6)))
+        return (1 - is_bg) * E + is_bg * (src * E_s + (1 - src) * rest)
 
 
 def moving_pixel_weight(x_1: torch.Tensor, frame0: torch.Tensor, weight: float) -> torch.Tensor:
