@@ -103,6 +103,9 @@ class Args:
     ground: bool = False
     """toy base: text tokens point into the first frame before the U-Net reads them (models.Grounding); tried with
     --p_goal 0.25, it did not help (README), so it is off"""
+    relate: bool = False
+    """toy base: every pixel gets its offset to where the caption points in the first frame (models.Relate); tried
+    with --p_goal 0.25, its heads did not learn to point (README), so it is off"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
@@ -365,7 +368,8 @@ def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     model = models.make_model("toy", width=args.width, evidence=args.evidence,
                               evidence_by_colour=args.evidence_by_colour,
-                              evidence_lead=args.evidence_lead, ground=args.ground)
+                              evidence_lead=args.evidence_lead, ground=args.ground,
+                              relate=args.relate)
     ema = copy.deepcopy(model).requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (

@@ -218,3 +218,46 @@ def test_grounding_makes_the_text_encoding_depend_on_where_things_are_in_the_fir
         before = m(x_t, t, c)
         m.ground.where[-1].bias.add_(1.0)
         assert not torch.allclose(before, m(x_t, t, c))
+
+
+def test_relate_gives_every_pixel_its_offset_to_one_place_that_follows_the_sprite():
+    torch.manual_seed(0)
+    m = models.make_model("toy", relate=True).eval()
+    frame = np.zeros((1, world.H, world.W, 3), np.uint8)
+    moved = frame.copy()
+    frame[0, 5:8, 4:7] = world.COLOURS["red"]
+    moved[0, 7:10, 7:10] = world.COLOURS["red"]          # the same sprite, 3 px right and 2 px down
+    with torch.no_grad():
+        # make every head attend to the red sprite: its query matches what the keys conv says about red pixels
+        red = m.condition(frame, [""])["frame0"][:, :, 6, 5]                   # (1, 3) the red colour in [-1, 1]
+        m.relate.frame[0].weight.zero_()
+        m.relate.frame[0].bias.zero_()
+        m.relate.frame[0].weight[0, :, 1, 1] = red[0]                         # feature 0 = <pixel, red>
+        m.relate.frame[2].weight.zero_()
+        m.relate.frame[2].bias.zero_()
+        m.relate.frame[2].weight[0, 0, 1, 1] = 1.0
+        m.relate.q[-1].weight.zero_()
+        m.relate.q[-1].bias.zero_()
+        m.relate.q[-1].bias.view(m.cfg.heads, -1)[:, 0] = 40.0
+        out = []
+        for f in (frame, moved):
+            c = m.condition(f, ["red square moves to the left edge"])
+            _, _, pooled = m.text(c["ids"])
+            out.append(m.relate(pooled, c["frame0"], m.coords))
+    H = world.H
+    for r, (cx, cy) in zip(out, [(5, 6), (8, 8)]):
+        rel = r[0, :2 * m.cfg.heads].reshape(m.cfg.heads, 2, H, H)
+        # one place per head: the offsets at two pixels differ by their distance (units of 4 px), and point at the
+        # sprite's centre: zero there
+        assert torch.allclose(rel[:, 0, :, 1:] - rel[:, 0, :, :-1], torch.tensor(-0.25), atol=1e-5)
+        assert torch.allclose(rel[:, 1, 1:] - rel[:, 1, :-1], torch.tensor(-0.25), atol=1e-5)
+        assert rel[:, :, cy, cx].abs().max() < 0.05, rel[:, :, cy, cx]
+    # and forward() reads them: changing where the caption points changes the velocity
+    x_t, t = torch.randn(1, *m.latent_shape()), torch.tensor([0.5])
+    for p in m.parameters():
+        p.data.add_(0.05 * torch.randn_like(p))
+    with torch.no_grad():
+        c = m.condition(frame, ["red square moves to the left edge"])
+        before = m(x_t, t, c)
+        m.relate.q[-1].bias.add_(1.0)
+        assert not torch.allclose(before, m(x_t, t, c))
