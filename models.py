@@ -130,6 +130,13 @@ def word_mean(h: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return (h * words).sum(1) / words.sum(1).clamp(min=1)
 
 
+def point_into_frame(q: torch.Tensor, keys: torch.Tensor, coords: torch.Tensor):
+    """Queries q (B, ..., feat) attend over the first frame's pixels, keys (B, feat, HW): softmax(q . k / sqrt(feat))
+    -> the attention a (B, ..., HW) and the place it lands, its attention-weighted coordinates xy (B, ..., 2)."""
+    a = torch.softmax(torch.einsum("b...f,bfp->b...p", q, keys) / math.sqrt(q.shape[-1]), dim=-1)
+    return a, torch.einsum("b...p,cp->b...c", a, coords.flatten(1))
+
+
 class Grounding(nn.Module):
     """Words point into the first frame. Each text token queries the first frame's pixels (keys: a small conv of
     the frame, so colour and shape), takes the attention-weighted pixel coordinates (x, y) per head and how peaked
@@ -155,8 +162,7 @@ class Grounding(nn.Module):
         B, L, _ = tokens.shape
         keys = self.frame(frame0).flatten(2)                                              # (B, feat, HW)
         q = self.q(tokens).reshape(B, L, self.heads, self.feat)
-        a = torch.softmax(torch.einsum("blhf,bfp->blhp", q, keys) / math.sqrt(self.feat), dim=-1)
-        xy = torch.einsum("blhp,cp->blhc", a, coords.flatten(1))                          # (B, L, heads, 2)
+        a, xy = point_into_frame(q, keys, coords)                                         # xy (B, L, heads, 2)
         peak = a.max(dim=-1).values[..., None]                                            # (B, L, heads, 1)
         h = tokens + self.where(torch.cat([xy, peak], -1).flatten(2))
         h = h + self.attn(self.ln1(h), key_mask=attend)
@@ -185,8 +191,7 @@ class Relate(nn.Module):
         B, _, H, W = frame0.shape
         keys = self.frame(frame0).flatten(2)                                              # (B, feat, HW)
         q = self.q(pooled).reshape(B, self.heads, self.feat)
-        a = torch.softmax(torch.einsum("bhf,bfp->bhp", q, keys) / math.sqrt(self.feat), dim=-1)  # (B, heads, HW)
-        xy = torch.einsum("bhp,cp->bhc", a, coords.flatten(1))                            # (B, heads, 2)
+        a, xy = point_into_frame(q, keys, coords)                                         # (B, heads, HW), (.., 2)
         rel = (xy[..., None, None] - coords[None, None]) * (H - 1) / 8                    # (B, heads, 2, H, W)
         return torch.cat([rel.flatten(1, 2), a.reshape(B, self.heads, H, W) * H * W / 9], 1)
 
@@ -288,8 +293,8 @@ class ToyVideoFlow(nn.Module):
         self.emb_out = nn.Sequential(nn.SiLU(), nn.Linear(2 * E, E), nn.SiLU(), nn.Linear(E, E))
         if cfg.relate:
             self.relate = Relate(cfg.text_dim, cfg.heads)
-        self.inp = nn.Conv2d(3 + 3 + 2 + 3 * cfg.heads * cfg.relate, c1, 3, padding=1)  # x_t, first frame, (x, y)
-                                                                  # coordinates[, Relate's offsets and maps]
+        # input: x_t, the first frame, (x, y) coordinates [, Relate's offsets and attention maps]
+        self.inp = nn.Conv2d(3 + 3 + 2 + 3 * cfg.heads * cfg.relate, c1, 3, padding=1)
         self.d1, self.down1 = ResBlock(c1, c1, E), nn.Conv2d(c1, c1, 3, stride=2, padding=1)
         self.d2, self.down2 = ResBlock(c1, c2, E), nn.Conv2d(c2, c2, 3, stride=2, padding=1)
         self.m1, self.mid_attn, self.m2 = ResBlock(c2, c3, E), BottleneckAttention(c3, cfg.text_dim, cfg.heads), ResBlock(c3, c3, E)
