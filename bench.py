@@ -264,6 +264,30 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
             "r_distill": r_all, "motion": motion, "task": task}
 
 
+def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ERROR_RATE) -> dict:
+    """A base with Relate (--relate): where its heads land in the first frame given each bench pair's prompt.
+    Share of pairs whose head 0 lands within 1 px (max-norm) of the task's agent sprite (pairs with a sprite agent)
+    and whose head 1 lands within 1 px of the task's target sprite (pairs with a sprite target) -- the two heads
+    train.pointing_loss supervises; with --point_weight 0 any head may do either, so 'any' takes the best head."""
+    if not getattr(model.cfg, "relate", False):
+        raise ValueError("--pointing reads Relate's heads: give a checkpoint pretrained with --relate")
+    pairs = world.bench_pairs(error_rate)[:n]
+    with torch.no_grad():
+        _, xy = model.relate_attention(model.condition(np.stack([p.frame0 for p in pairs]),
+                                                       prompts_for(pairs, condition)))
+    px = ((xy + 1) * (model.cfg.size - 1) / 2).numpy()                                  # (n, heads, 2) in pixels
+    hits = {"agent": [], "target": [], "agent_any": [], "target_any": []}
+    for p, h in zip(pairs, px):
+        where = {s.name: np.array([s.x, s.y]) for s in p.scene.sprites}
+        for role, name, head in (("agent", p.task.agent, 0), ("target", p.task.target, 1)):
+            if name in where:
+                d = np.abs(h - where[name]).max(-1)                                      # (heads,)
+                hits[role].append(d[head] <= 1)
+                hits[role + "_any"].append(d.min() <= 1)
+    return {k: float(np.mean(v)) for k, v in hits.items()} | {"n_agent": len(hits["agent"]),
+                                                              "n_target": len(hits["target"])}
+
+
 def format_table(res: dict, title: str = "") -> str:
     rows = [f"{title}condition={res['condition']} n={res['n']} seed={res['seed']} error_rate={res['error_rate']} "
             f"steps={res['steps']}",
@@ -683,6 +707,8 @@ def main(argv=None):
                         "task (bench.rank_rdistill)")
     p.add_argument("--group", type=int, default=8, help="with --rank_rdistill: rollouts per pair (train.py's "
                    "--group_size)")
+    p.add_argument("--pointing", action="store_true",
+                   help="a --relate base: how often its heads land on the task's agent and target given --condition")
     p.add_argument("--report", metavar="OUT_DIR", default=None,
                    help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
                         "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
@@ -753,6 +779,18 @@ def main(argv=None):
         if a.png:
             plot_handoff(res, a.png)
             print(f"wrote {a.png}")
+        if a.json:
+            print(json.dumps(res))
+        return
+    if a.pointing:
+        try:
+            res = pointing(model, a.condition, a.n, a.error_rate)
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        print(f"{a.checkpoint or 'shipped base'} given {a.condition}, {a.n} bench pairs: head 0 on the agent "
+              f"{res['agent']:.3f} (best head {res['agent_any']:.3f}, {res['n_agent']} pairs), head 1 on the target "
+              f"{res['target']:.3f} (best head {res['target_any']:.3f}, {res['n_target']} pairs)")
         if a.json:
             print(json.dumps(res))
         return

@@ -186,12 +186,15 @@ class Relate(nn.Module):
         self.frame = nn.Sequential(nn.Conv2d(3, feat, 3, padding=1), nn.SiLU(), nn.Conv2d(feat, feat, 3, padding=1))
         self.q = nn.Sequential(nn.Linear(dim, dim), nn.SiLU(), nn.Linear(dim, heads * feat))
 
+    def attend(self, pooled, frame0, coords):
+        """Where each head looks: its attention over the pixels (B, heads, HW) and where it lands (B, heads, 2)."""
+        q = self.q(pooled).reshape(len(pooled), self.heads, self.feat)
+        return point_into_frame(q, self.frame(frame0).flatten(2), coords)
+
     def forward(self, pooled, frame0, coords):
         """pooled (B, dim) the caption, frame0 (B, 3, H, W), coords (2, H, W) -> (B, 3 * heads, H, W)."""
         B, _, H, W = frame0.shape
-        keys = self.frame(frame0).flatten(2)                                              # (B, feat, HW)
-        q = self.q(pooled).reshape(B, self.heads, self.feat)
-        a, xy = point_into_frame(q, keys, coords)                                         # (B, heads, HW), (.., 2)
+        a, xy = self.attend(pooled, frame0, coords)                                       # (B, heads, HW), (.., 2)
         rel = (xy[..., None, None] - coords[None, None]) * (H - 1) / 8                    # (B, heads, 2, H, W)
         return torch.cat([rel.flatten(1, 2), a.reshape(B, self.heads, H, W) * H * W / 9], 1)
 
@@ -321,6 +324,19 @@ class ToyVideoFlow(nn.Module):
     def latent_shape(self) -> tuple:
         return (self.cfg.frames, 3, self.cfg.size, self.cfg.size)
 
+    def relate_attention(self, c: dict):
+        """With cfg.relate: where Relate's heads look in the first frame under c, (attention (B, heads, HW), place
+        (B, heads, 2) in [-1, 1] coordinates) -- what train.pointing_loss supervises and the README's probe reads."""
+        return self.relate.attend(self._read(c)[2], c["frame0"], self.coords)
+
+    def _read(self, c: dict):
+        """The caption's token encodings (B, L, dim), which to attend to (B, L), and their mean (B, dim)."""
+        tokens, mask, pooled = self.text(c["ids"])
+        if self.cfg.ground:
+            tokens = self.ground(tokens, mask, c["frame0"], self.coords)
+            pooled = word_mean(tokens, c["ids"])
+        return tokens, mask, pooled
+
     @staticmethod
     def encode_video(video: np.ndarray) -> torch.Tensor:
         """uint8 (B, F, H, W, 3) -> x_1 (B, T, 3, H, W) in [-1, 1]: the generated frames 1..F-1."""
@@ -334,10 +350,7 @@ class ToyVideoFlow(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
         B, T, C, H, W = x_t.shape
-        tokens, mask, pooled = self.text(c["ids"])
-        if self.cfg.ground:
-            tokens = self.ground(tokens, mask, c["frame0"], self.coords)
-            pooled = word_mean(tokens, c["ids"])
+        tokens, mask, pooled = self._read(c)
         e = self.t_mlp(timestep_embedding(t, self.cfg.emb_dim)) + self.text_proj(pooled)      # (B, E)
         emb = self.emb_out(torch.cat([e[:, None].expand(B, T, -1), self.frame_emb[None, :T].expand(B, T, -1)],
                                      dim=-1)).reshape(B * T, -1)                               # (B*T, E)

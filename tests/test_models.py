@@ -261,3 +261,52 @@ def test_relate_gives_every_pixel_its_offset_to_one_place_that_follows_the_sprit
         before = m(x_t, t, c)
         m.relate.q[-1].bias.add_(1.0)
         assert not torch.allclose(before, m(x_t, t, c))
+
+
+def test_pointing_loss_is_the_cross_entropy_of_the_supervised_heads_at_the_named_sprites():
+    import train
+    torch.manual_seed(0)
+    m = models.make_model("toy", relate=True).eval()
+    frame = np.zeros((1, world.H, world.W, 3), np.uint8)
+    frame[0, 5:8, 4:7] = world.COLOURS["red"]                 # a red square centred at (x, y) = (5, 6)
+    frame[0, 10:13, 10:13] = world.COLOURS["blue"]            # a blue square centred at (11, 11)
+    captions = ["red square moves to the blue square"]
+    with torch.no_grad():
+        a, _ = m.relate_attention(m.condition(frame, captions))
+        red, blue = 6 * world.W + 5, 11 * world.W + 11
+        both = train.pointing_loss(m, frame, captions, np.array([[[5, 6], [11, 11]]], np.float32))
+        assert torch.allclose(both, -(a[0, 0, red].log() + a[0, 1, blue].log()) / 2)
+        mover_only = train.pointing_loss(m, frame, captions, np.array([[[5, 6], [np.nan, np.nan]]], np.float32))
+        assert torch.allclose(mover_only, -a[0, 0, red].log())
+        none = train.pointing_loss(m, frame, captions, np.full((1, 2, 2), np.nan, np.float32))
+        assert none == 0
+        # a head that looks at the red sprite (the keys conv reads red, every query asks for it) is rewarded for
+        # the red place and punished for the blue one
+        red_rgb = m.condition(frame, [""])["frame0"][:, :, 6, 5]
+        m.relate.frame[0].weight.zero_()
+        m.relate.frame[0].bias.zero_()
+        m.relate.frame[0].weight[0, :, 1, 1] = red_rgb[0]
+        m.relate.frame[2].weight.zero_()
+        m.relate.frame[2].bias.zero_()
+        m.relate.frame[2].weight[0, 0, 1, 1] = 1.0
+        m.relate.q[-1].weight.zero_()
+        m.relate.q[-1].bias.zero_()
+        m.relate.q[-1].bias.view(m.cfg.heads, -1)[:, 0] = 40.0
+        at_red = train.pointing_loss(m, frame, captions, np.array([[[5, 6], [np.nan, np.nan]]], np.float32))
+        at_blue = train.pointing_loss(m, frame, captions, np.array([[[11, 11], [np.nan, np.nan]]], np.float32))
+    # it spreads over the square's 9 red pixels: -log(1/9) at the centre; uniform over the frame would be log 256
+    assert at_red < np.log(9) + 0.01 < np.log(world.H * world.W) < at_blue, (at_red, at_blue)
+
+
+def test_pretraining_places_are_the_named_sprites_in_frame_0():
+    videos, captions, places = world.pretraining_batch(np.random.default_rng(1), 64, p_goal=0.5, places=True)
+    checked = 0
+    for v, cap, pl in zip(videos, captions, places):
+        for (x, y), name in zip(pl, [cap.split(" moves")[0] if " moves" in cap else None,
+                                     cap.split("the ")[-1] if " to the " in cap or " with the " in cap else None]):
+            if np.isnan(x):
+                assert name is None or name.endswith("edge") or cap.startswith(("camera", "nothing")), (cap, pl)
+                continue
+            assert tuple(v[0, int(y), int(x)]) == world.COLOURS[name.split()[0]], (cap, pl)
+            checked += 1
+    assert checked > 40

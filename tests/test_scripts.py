@@ -86,6 +86,10 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     assert r.returncode == 2 and "--group_size must be >= 2" in r.stderr
     r = run("train.py", "--beta_d", "-0.1")
     assert r.returncode == 2 and "--beta_d must be >= 0" in r.stderr
+    r = run("train.py", "--stage", "pretrain", "--point_weight", "0.1")
+    assert r.returncode == 2 and "it needs --relate" in r.stderr
+    r = run("bench.py", "--pointing", "--n", "2")
+    assert r.returncode == 2 and "pretrained with --relate" in r.stderr
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
     r = run("bench.py", "--checkpoint", str(bad), "--n", "2")
@@ -192,3 +196,17 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     assert "Spearman(r_distill, -motion)" in r.stdout and json.loads(r.stdout.splitlines()[-1])["group"] == 3
     r = run("bench.py", "--rank_rdistill", "--group", "1")
     assert r.returncode == 2 and "--group must be >= 2" in r.stderr
+
+
+def test_pretraining_that_teaches_relate_to_point_and_the_probe_that_reads_it(tmp_path):
+    ckpt = str(tmp_path / "relate.pt")
+    r = run("train.py", "--stage", "pretrain", "--relate", "--p_goal", "0.5", "--point_weight", "0.1",
+            "--pretrain_steps", "2", "--pretrain_batch", "4", "--width", "8", "--log_every", "1", "--out", ckpt,
+            "--run_dir", str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert "| pointing " in r.stdout
+    assert all("pointing_loss" in json.loads(line) for line in open(tmp_path / "pretrain.jsonl"))
+    r = run("bench.py", "--checkpoint", ckpt, "--pointing", "--condition", "goal", "--n", "20", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout.splitlines()[-1])
+    assert 0 <= res["agent"] <= res["agent_any"] <= 1 and res["n_agent"] > 0 and res["n_target"] > 0
