@@ -178,7 +178,8 @@ class Relate(nn.Module):
     a rule a 3x3 conv can apply where the agent is, at every frame (the offset is read where the sprite is now).
     Returns (B, 3 * heads, H, W). Measured (README, "A base with offsets to where the caption points"): pretrained
     with 25% goal captions, no head learned to point at the target or the agent (each within 1 px of the target in
-    at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base."""
+    at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base. train.py
+    --point_weight supervises heads 0 and 1 in pretraining (README, "Teaching the offset heads to point")."""
 
     def __init__(self, dim: int, heads: int, feat: int = 16):
         super().__init__()
@@ -324,10 +325,12 @@ class ToyVideoFlow(nn.Module):
     def latent_shape(self) -> tuple:
         return (self.cfg.frames, 3, self.cfg.size, self.cfg.size)
 
-    def relate_attention(self, c: dict):
+    def relate_attention(self, c: dict, detach_text: bool = False):
         """With cfg.relate: where Relate's heads look in the first frame under c, (attention (B, heads, HW), place
-        (B, heads, 2) in [-1, 1] coordinates) -- what train.pointing_loss supervises and the README's probe reads."""
-        return self.relate.attend(self._read(c)[2], c["frame0"], self.coords)
+        (B, heads, 2) in [-1, 1] coordinates) -- what train.pointing_loss supervises (with no gradient into the
+        caption's encoding if detach_text) and bench.pointing reads."""
+        pooled = self._read(c)[2]
+        return self.relate.attend(pooled.detach() if detach_text else pooled, c["frame0"], self.coords)
 
     def _read(self, c: dict):
         """The caption's token encodings (B, L, dim), which to attend to (B, L), and their mean (B, dim)."""

@@ -108,8 +108,8 @@ class Args:
     with --p_goal 0.25, its heads did not learn to point (README), so it is off"""
     point_weight: float = 0.0
     """toy base with --relate: weight of pointing_loss in pretraining, which teaches Relate's head 0 to look at the
-    mover the caption names and head 1 at the sprite a goal caption names as target (0 = off: the heads learn
-    only from the video loss, and did not learn to point, README)"""
+    mover the caption names and head 1 at the sprite a goal caption names as target, else the mover (0 = off: the
+    heads learn only from the video loss, and did not learn to point, README)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
@@ -372,11 +372,15 @@ def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> to
 
 def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.ndarray) -> torch.Tensor:
     """Toy base, --relate --point_weight: cross-entropy of Relate's head 0's attention over the first frame's pixels
-    against the centre pixel of the mover the caption names, and of head 1's against the target a goal caption
-    names (places (B, 2, 2) from world.pretraining_batch, NaN where the caption names none: no term). A real base
-    learns where "the blue circle" is from web-scale captions; the toy's heads did not from the video loss alone
-    (README), so pretraining says it outright. The video loss still decides what the model does with the place."""
-    a, _ = model.relate_attention(model.condition(frame0, captions))              # (B, heads, HW)
+    against the centre pixel of the mover the caption names, and of head 1's against the sprite the motion heads
+    for: a goal caption's target, else the mover itself, so that head 1's offset is a direction only when the
+    caption names a goal (places (B, 2, 2) from world.pretraining_batch, NaN where the caption names no sprite: no
+    term). A real base learns where "the blue circle" is from web-scale captions; the toy's heads did not from the
+    video loss alone, so pretraining says it outright. The caption encoding is detached here: this loss trains
+    Relate's query MLP and keys, not the text encoder the U-Net reads D through. Measured (README, "Teaching the
+    offset heads to point"): with the gradient into the text encoder, and head 1 supervised on goal captions only,
+    the heads pointed but D-following broke (error-free D 0.345)."""
+    a, _ = model.relate_attention(model.condition(frame0, captions), detach_text=True)  # (B, heads, HW)
     pl = torch.as_tensor(places)
     valid = ~pl.isnan().any(-1)                                                      # (B, 2)
     idx = (pl[..., 1].nan_to_num() * model.cfg.size + pl[..., 0].nan_to_num()).long()  # row-major pixel index

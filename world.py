@@ -516,8 +516,9 @@ def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.1
     video captions say such things, and they are why a real base half-understands a short task); with p_vague a
     caption that names the mover but not the motion; with p_empty an empty caption (as video models are trained
     for classifier-free guidance). Returns (videos uint8 (B, F, H, W, 3), captions list[str]) and, with places,
-    where the caption's sprites are in frame 0: (B, 2, 2) float (x, y) of the mover it names and of the sprite a
-    goal caption names as target, NaN where it names none (the camera, an edge, an empty caption)."""
+    where the caption's sprites are in frame 0: (B, 2, 2) float (x, y) of the mover it names, and of the sprite
+    the motion heads for: a goal caption's target sprite, else the mover itself (no sprite to head for); NaN
+    where the caption names none (the camera, an empty caption)."""
     videos, captions, where = [], [], []
     while len(videos) < batch:
         scene = random_scene(rng)
@@ -529,10 +530,10 @@ def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.1
         u = rng.random()
         captions.append(goal_caption(goal[0]) if goal else "" if u < p_empty else
                         vague_caption(scene, plan) if u < p_empty + p_vague else describe(scene, plan))
-        xy = {s.name: (s.x, s.y) for s in scene.sprites}
         named = captions[-1] != "" and plan.mover is not None and plan.mover >= 0 and plan.k > 0
-        where.append([xy[scene.sprites[plan.mover].name] if named else (np.nan, np.nan),
-                      xy.get(goal[0].target, (np.nan, np.nan)) if goal else (np.nan, np.nan)])
+        mover = (scene.sprites[plan.mover].x, scene.sprites[plan.mover].y) if named else (np.nan, np.nan)
+        target = {s.name: (s.x, s.y) for s in scene.sprites}.get(goal[0].target) if goal else None
+        where.append([mover, target or mover])
     if places:
         return np.stack(videos), captions, np.array(where, dtype=np.float32)
     return np.stack(videos), captions
