@@ -220,6 +220,21 @@ def test_grounding_makes_the_text_encoding_depend_on_where_things_are_in_the_fir
         assert not torch.allclose(before, m(x_t, t, c))
 
 
+def _every_relate_head_finds(m, frame, at):
+    """Set m's Relate so that every head attends to the colour of frame's pixel at (row, col): its query matches
+    what the keys conv says about pixels of that colour."""
+    rgb = m.condition(frame, [""])["frame0"][0, :, at[0], at[1]]            # (3,) the colour in [-1, 1]
+    m.relate.frame[0].weight.zero_()
+    m.relate.frame[0].bias.zero_()
+    m.relate.frame[0].weight[0, :, 1, 1] = rgb                                # feature 0 = <pixel, colour>
+    m.relate.frame[2].weight.zero_()
+    m.relate.frame[2].bias.zero_()
+    m.relate.frame[2].weight[0, 0, 1, 1] = 1.0
+    m.relate.q[-1].weight.zero_()
+    m.relate.q[-1].bias.zero_()
+    m.relate.q[-1].bias.view(m.cfg.heads, -1)[:, 0] = 40.0
+
+
 def test_relate_gives_every_pixel_its_offset_to_one_place_that_follows_the_sprite():
     torch.manual_seed(0)
     m = models.make_model("toy", relate=True).eval()
@@ -228,17 +243,7 @@ def test_relate_gives_every_pixel_its_offset_to_one_place_that_follows_the_sprit
     frame[0, 5:8, 4:7] = world.COLOURS["red"]
     moved[0, 7:10, 7:10] = world.COLOURS["red"]          # the same sprite, 3 px right and 2 px down
     with torch.no_grad():
-        # make every head attend to the red sprite: its query matches what the keys conv says about red pixels
-        red = m.condition(frame, [""])["frame0"][:, :, 6, 5]                   # (1, 3) the red colour in [-1, 1]
-        m.relate.frame[0].weight.zero_()
-        m.relate.frame[0].bias.zero_()
-        m.relate.frame[0].weight[0, :, 1, 1] = red[0]                         # feature 0 = <pixel, red>
-        m.relate.frame[2].weight.zero_()
-        m.relate.frame[2].bias.zero_()
-        m.relate.frame[2].weight[0, 0, 1, 1] = 1.0
-        m.relate.q[-1].weight.zero_()
-        m.relate.q[-1].bias.zero_()
-        m.relate.q[-1].bias.view(m.cfg.heads, -1)[:, 0] = 40.0
+        _every_relate_head_finds(m, frame, (6, 5))
         out = []
         for f in (frame, moved):
             c = m.condition(f, ["red square moves to the left edge"])
@@ -280,18 +285,8 @@ def test_pointing_loss_is_the_cross_entropy_of_the_supervised_heads_at_the_named
         assert torch.allclose(mover_only, -a[0, 0, red].log())
         none = train.pointing_loss(m, frame, captions, np.full((1, 2, 2), np.nan, np.float32))
         assert none == 0
-        # a head that looks at the red sprite (the keys conv reads red, every query asks for it) is rewarded for
-        # the red place and punished for the blue one
-        red_rgb = m.condition(frame, [""])["frame0"][:, :, 6, 5]
-        m.relate.frame[0].weight.zero_()
-        m.relate.frame[0].bias.zero_()
-        m.relate.frame[0].weight[0, :, 1, 1] = red_rgb[0]
-        m.relate.frame[2].weight.zero_()
-        m.relate.frame[2].bias.zero_()
-        m.relate.frame[2].weight[0, 0, 1, 1] = 1.0
-        m.relate.q[-1].weight.zero_()
-        m.relate.q[-1].bias.zero_()
-        m.relate.q[-1].bias.view(m.cfg.heads, -1)[:, 0] = 40.0
+        # a head that looks at the red sprite is rewarded for the red place and punished for the blue one
+        _every_relate_head_finds(m, frame, (6, 5))
         at_red = train.pointing_loss(m, frame, captions, np.array([[[5, 6], [np.nan, np.nan]]], np.float32))
         at_blue = train.pointing_loss(m, frame, captions, np.array([[[11, 11], [np.nan, np.nan]]], np.float32))
     # it spreads over the square's 9 red pixels: -log(1/9) at the centre; uniform over the frame would be log 256
