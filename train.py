@@ -428,8 +428,8 @@ def pretrain(args: Args) -> dict:
                 rec["pointing_loss"] = float(np.mean(run_point))
             logf.write(json.dumps(rec) + "\n")
             logf.flush()
-            point = f"pointing {rec['pointing_loss']:.3f} | " if run_point else ""
-            print(f"step {step:5d}/{steps} | loss {rec['loss']:.4f} | {point}grad {rec['grad_norm']:.2f} | "
+            shown = f"pointing {rec['pointing_loss']:.3f} | " if run_point else ""
+            print(f"step {step:5d}/{steps} | loss {rec['loss']:.4f} | {shown}grad {rec['grad_norm']:.2f} | "
                   f"{_eta(start, step, steps)}", flush=True)
             run_loss, run_point = [], []
     minutes = (time.time() - start) / 60
