@@ -267,6 +267,7 @@ class ToyConfig:
                                  # onto, and a background pixel follows the sprite beside it (_lead_evidence)
     ground: bool = False     # text tokens point into the first frame (Grounding) before the U-Net reads them
     relate: bool = False     # every pixel gets its offset to where the caption points in the first frame (Relate)
+    relate_text: bool = False  # with relate: Relate reads the caption through its own text encoder, not the U-Net's
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -297,6 +298,10 @@ class ToyVideoFlow(nn.Module):
         self.emb_out = nn.Sequential(nn.SiLU(), nn.Linear(2 * E, E), nn.SiLU(), nn.Linear(E, E))
         if cfg.relate:
             self.relate = Relate(cfg.text_dim, cfg.heads)
+        if cfg.relate and cfg.relate_text:
+            # a second encoder of the same shape, so that teaching Relate to point (train.pointing_loss) can shape
+            # how it reads the caption without moving the encodings the U-Net reads D through
+            self.relate_text = TextEncoder(len(world.VOCAB), cfg.text_dim, cfg.text_layers, cfg.heads, cfg.max_words)
         # input: x_t, the first frame, (x, y) coordinates [, Relate's offsets and attention maps]
         self.inp = nn.Conv2d(3 + 3 + 2 + 3 * cfg.heads * cfg.relate, c1, 3, padding=1)
         self.d1, self.down1 = ResBlock(c1, c1, E), nn.Conv2d(c1, c1, 3, stride=2, padding=1)
@@ -328,9 +333,15 @@ class ToyVideoFlow(nn.Module):
     def relate_attention(self, c: dict, detach_text: bool = False):
         """With cfg.relate: where Relate's heads look in the first frame under c, (attention (B, heads, HW), place
         (B, heads, 2) in [-1, 1] coordinates) -- what train.pointing_loss supervises (with no gradient into the
-        caption's encoding if detach_text) and bench.pointing reads."""
-        pooled = self._read(c)[2]
-        return self.relate.attend(pooled.detach() if detach_text else pooled, c["frame0"], self.coords)
+        U-Net's encoding of the caption if detach_text) and bench.pointing reads."""
+        return self.relate.attend(self._relate_query(c, self._read(c)[2], detach_text), c["frame0"], self.coords)
+
+    def _relate_query(self, c: dict, pooled: torch.Tensor, detach_text: bool = False) -> torch.Tensor:
+        """The caption as Relate reads it (B, dim): its own encoder's mean with cfg.relate_text, else the U-Net's
+        pooled encoding (detached if detach_text)."""
+        if self.cfg.relate_text:
+            return self.relate_text(c["ids"])[2]
+        return pooled.detach() if detach_text else pooled
 
     def _read(self, c: dict):
         """The caption's token encodings (B, L, dim), which to attend to (B, L), and their mean (B, dim)."""
@@ -360,7 +371,7 @@ class ToyVideoFlow(nn.Module):
         f0 = c["frame0"][:, None].expand(B, T, C, H, W)
         h = [x_t, f0, self.coords.expand(B, T, 2, H, W)]
         if self.cfg.relate:
-            r = self.relate(pooled, c["frame0"], self.coords)
+            r = self.relate(self._relate_query(c, pooled), c["frame0"], self.coords)
             h.append(r[:, None].expand(B, T, *r.shape[1:]))
         h = torch.cat(h, dim=2).reshape(B * T, -1, H, W)
         h1 = self.d1(self.inp(h), emb, T)                                   # (B*T, c1, 16, 16)

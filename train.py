@@ -106,6 +106,9 @@ class Args:
     relate: bool = False
     """toy base: every pixel gets its offset to where the caption points in the first frame (models.Relate); tried
     with --p_goal 0.25, its heads did not learn to point (README), so it is off"""
+    relate_text: bool = False
+    """toy base with --relate: Relate reads the caption through its own text encoder, so --point_weight trains that
+    encoder and leaves the U-Net's alone (models.ToyConfig.relate_text)"""
     point_weight: float = 0.0
     """toy base with --relate: weight of pointing_loss in pretraining, which teaches Relate's head 0 to look at the
     mover the caption names and head 1 at the sprite a goal caption names as target, else the mover (0 = off: the
@@ -326,6 +329,8 @@ def parse_args(argv=None) -> Args:
         p.error("--ema must lie in [0, 1)")
     if args.point_weight < 0 or (args.point_weight and not args.relate):
         p.error("--point_weight must be >= 0 and supervises Relate's heads: it needs --relate")
+    if args.relate_text and not args.relate:
+        p.error("--relate_text gives Relate its own text encoder: it needs --relate")
     return args
 
 
@@ -376,8 +381,9 @@ def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.nda
     for: a goal caption's target, else the mover itself, so that head 1's offset is a direction only when the
     caption names a goal (places (B, 2, 2) from world.pretraining_batch, NaN where the caption names no sprite: no
     term). A real base learns where "the blue circle" is from web-scale captions; the toy's heads did not from the
-    video loss alone, so pretraining says it outright. The caption encoding is detached here: this loss trains
-    Relate's query MLP and keys, not the text encoder the U-Net reads D through. Measured (README, "Teaching the
+    video loss alone, so pretraining says it outright. The U-Net's encoding of the caption is detached here: this
+    loss trains Relate's query MLP and keys (and, with --relate_text, Relate's own text encoder), not the text
+    encoder the U-Net reads D through. Measured (README, "Teaching the
     offset heads to point"): with the gradient into the text encoder, and head 1 supervised on goal captions only,
     the heads pointed but D-following broke (error-free D 0.345)."""
     a, _ = model.relate_attention(model.condition(frame0, captions), detach_text=True)  # (B, heads, HW)
@@ -393,7 +399,7 @@ def pretrain(args: Args) -> dict:
     model = models.make_model("toy", width=args.width, evidence=args.evidence,
                               evidence_by_colour=args.evidence_by_colour,
                               evidence_lead=args.evidence_lead, ground=args.ground,
-                              relate=args.relate)
+                              relate=args.relate, relate_text=args.relate_text)
     ema = copy.deepcopy(model).requires_grad_(False)
     opt = torch.optim.AdamW(model.parameters(), lr=args.pretrain_lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: min(1.0, (s + 1) / 100) * (

@@ -297,6 +297,31 @@ def test_pointing_loss_is_the_cross_entropy_of_the_supervised_heads_at_the_named
     assert m.relate.q[-1].weight.grad.abs().sum() > 0 and m.relate.frame[0].weight.grad.abs().sum() > 0
 
 
+
+def test_relate_text_gives_relate_its_own_caption_encoder_which_the_pointing_loss_trains():
+    import train
+    torch.manual_seed(0)
+    m = models.make_model("toy", relate=True, relate_text=True).eval()
+    frame = np.zeros((1, world.H, world.W, 3), np.uint8)
+    frame[0, 5:8, 4:7] = world.COLOURS["red"]
+    frame[0, 10:13, 10:13] = world.COLOURS["blue"]
+    c = m.condition(frame, ["red square moves to the blue square"])
+    train.pointing_loss(m, frame, ["red square moves to the blue square"],
+                        np.array([[[5, 6], [11, 11]]], np.float32)).backward()
+    assert all(p.grad is None for p in m.text.parameters())          # the U-Net's encoder is left alone
+    assert m.relate_text.emb.weight.grad.abs().sum() > 0              # Relate's own encoder is what learns
+    # forward reads the places through Relate's encoder: moving its words moves the velocity; the U-Net's
+    # encoder still feeds the U-Net
+    x, t = torch.randn(1, *m.latent_shape()), torch.full((1,), 0.5)
+    with torch.no_grad():
+        m.out.weight.normal_(0, 0.1)                                   # zero-initialised: make the output see the input
+        v = m(x, t, c)
+        m.relate_text.emb.weight.add_(1.0)
+        v_relate = m(x, t, c)
+        m.text.emb.weight.add_(1.0)
+        v_both = m(x, t, c)
+    assert not torch.allclose(v, v_relate) and not torch.allclose(v_relate, v_both)
+
 def test_pretraining_places_are_the_named_sprites_in_frame_0():
     videos, captions, places = world.pretraining_batch(np.random.default_rng(1), 64, p_goal=0.5, places=True)
     checked = 0
