@@ -179,7 +179,8 @@ class Relate(nn.Module):
     Returns (B, 3 * heads, H, W). Measured (README, "A base with offsets to where the caption points"): pretrained
     with 25% goal captions, no head learned to point at the target or the agent (each within 1 px of the target in
     at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base. train.py
-    --point_weight supervises heads 0 and 1 in pretraining (README, "Teaching the offset heads to point")."""
+    --point_weight supervises heads 0 and 1 in pretraining (README, "Teaching the offset heads to point"), and
+    cfg.relate_text gives Relate its own text encoder (README, "Relate with its own text encoder")."""
 
     def __init__(self, dim: int, heads: int, feat: int = 16):
         super().__init__()
