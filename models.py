@@ -335,9 +335,10 @@ class ToyVideoFlow(nn.Module):
         """With cfg.relate: where Relate's heads look in the first frame under c, (attention (B, heads, HW), place
         (B, heads, 2) in [-1, 1] coordinates) -- what train.pointing_loss supervises (with no gradient into the
         U-Net's encoding of the caption if detach_text) and bench.pointing reads."""
-        return self.relate.attend(self._relate_query(c, self._read(c)[2], detach_text), c["frame0"], self.coords)
+        pooled = None if self.cfg.relate_text else self._read(c)[2]   # the U-Net's encoding only where Relate reads it
+        return self.relate.attend(self._relate_query(c, pooled, detach_text), c["frame0"], self.coords)
 
-    def _relate_query(self, c: dict, pooled: torch.Tensor, detach_text: bool = False) -> torch.Tensor:
+    def _relate_query(self, c: dict, pooled: torch.Tensor | None, detach_text: bool = False) -> torch.Tensor:
         """The caption as Relate reads it (B, dim): its own encoder's mean with cfg.relate_text, else the U-Net's
         pooled encoding (detached if detach_text)."""
         if self.cfg.relate_text:

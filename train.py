@@ -385,9 +385,9 @@ def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.nda
     term). A real base learns where "the blue circle" is from web-scale captions; the toy's heads did not from the
     video loss alone, so pretraining says it outright. The U-Net's encoding of the caption is detached here: this
     loss trains Relate's query MLP and keys (and, with --relate_text, Relate's own text encoder), not the text
-    encoder the U-Net reads D through. Measured (README, "Teaching the
-    offset heads to point"): with the gradient into the text encoder, and head 1 supervised on goal captions only,
-    the heads pointed but D-following broke (error-free D 0.345)."""
+    encoder the U-Net reads D through. Measured (README, "Teaching the offset heads to point"): with the gradient
+    into the text encoder, and head 1 supervised on goal captions only, the heads pointed but D-following broke
+    (error-free D 0.345)."""
     a, _ = model.relate_attention(model.condition(frame0, captions), detach_text=True)  # (B, heads, HW)
     pl = torch.as_tensor(places)
     valid = ~pl.isnan().any(-1)                                                      # (B, 2)

@@ -297,7 +297,6 @@ def test_pointing_loss_is_the_cross_entropy_of_the_supervised_heads_at_the_named
     assert m.relate.q[-1].weight.grad.abs().sum() > 0 and m.relate.frame[0].weight.grad.abs().sum() > 0
 
 
-
 def test_relate_text_gives_relate_its_own_caption_encoder_which_the_pointing_loss_trains():
     import train
     torch.manual_seed(0)
@@ -321,6 +320,7 @@ def test_relate_text_gives_relate_its_own_caption_encoder_which_the_pointing_los
         m.text.emb.weight.add_(1.0)
         v_both = m(x, t, c)
     assert not torch.allclose(v, v_relate) and not torch.allclose(v_relate, v_both)
+
 
 def test_pretraining_places_are_the_named_sprites_in_frame_0():
     videos, captions, places = world.pretraining_batch(np.random.default_rng(1), 64, p_goal=0.5, places=True)
