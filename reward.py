@@ -151,6 +151,21 @@ def judge_agent(video, task_text: str) -> Judgment:
     return _graded(min(shift - 0.75, 1.25 - spread))
 
 
+def judge_task_reward(video, task_text: str) -> Judgment:
+    """Fig. 10, the *training* task reward: yes only if "the target agent performs the required action" (criterion 1,
+    judge_agent's rule: it moved and no other sprite did) and "the action is fully completed by the final frame"
+    (criterion 2, judge_task's end state). Criterion 3, realism, is left to the separate consistency reward (Sec. 4.1).
+    Graded score = min(task score, agent score): positive iff both are yes, as an AND of two log-odds-like margins.
+    train.py's --task_reward attributed; the bench keeps Fig. 15's end-state question (judge_task)."""
+    r = read_video(video)
+    if r is None:
+        return INVALID
+    jt, ja = judge_task(r, task_text), judge_agent(r, task_text)
+    if jt.score is None or ja.score is None:
+        return INVALID
+    return Judgment(bool(jt.yes and ja.yes), min(jt.score, ja.score), jt.why or ja.why)
+
+
 CONSISTENCY_FAULTS = ("appears", "duplicate", "vanishes", "reshaped", "teleports", "smear")  # judge_consistency's kinds
 
 

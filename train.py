@@ -190,6 +190,10 @@ class Args:
     """a in the SDE's sigma_t = a sqrt((1 - t) / t) (Flow-GRPO's 0.7)"""
     lambda_task: float = 1.0
     """Eq. 10: weight of the task judge's graded score"""
+    task_reward: str = "end_state"
+    """the toy judges' r_task: end_state (Fig. 15's question, is the task solved by the end: reward.judge_task; every
+    README result unless it says otherwise) | attributed (Fig. 10's training prompt: solved by the end *and* by the
+    addressed agent alone: reward.judge_task_reward). A VLM judge always asks Fig. 10's prompt"""
     lambda_distill: float = 1.0
     """Eq. 10: weight of r_distill (Eq. 9); 0 = no distillation reward"""
     lambda_cons: float = 1.0
@@ -276,6 +280,7 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
+                          ("task_reward", TOY_TASK_REWARDS),
                           ("model", ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS))),
                           ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
@@ -293,6 +298,8 @@ def parse_args(argv=None) -> Args:
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
+    if args.judge != "toy" and args.task_reward != "end_state":
+        p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
@@ -665,11 +672,15 @@ def make_judge(args: Args):
     return reward.VLMJudge.from_pretrained(args.judge_path)
 
 
-def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
+TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_task | reward.judge_task_reward
+
+
+def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end_state") -> dict:
     """Alg. 1 line 6: the judges' graded scores of each rollout as rewards (the toy judges' margins, or a VLM's
     log p(yes) - log p(no)). Where no judgment is possible -- a malformed video or answer, a missing agent, or a judge
     that raises -- the score is NaN: rl.advantages skips that rollout and the log counts it (paper Tab. 4); a judge
-    failure never stops the run. Returns {"task", "consistency", "solved", "invalid", "judge_errors"}: (N,)."""
+    failure never stops the run. task_reward picks the toy r_task (--task_reward). Returns {"task", "consistency",
+    "solved", "invalid", "judge_errors"}: (N,)."""
     n = len(tasks)
     if JUDGE is not None:                       # a VLM, batched; a failing batch is counted and skipped
         errors = [0] * n
@@ -682,12 +693,13 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str]) -> dict:
         except Exception:  # noqa: BLE001
             jcs, errors = [reward.INVALID] * n, [e + 1 for e in errors]
     else:
+        judge_task = reward.judge_task_reward if task_reward == "attributed" else reward.judge_task
         jts, jcs, errors = [], [], []
         for v, t in zip(videos, tasks):
             e = 0
             try:
                 r = reward.read_video(v)
-                jt = reward.judge_task(r, t) if r else reward.INVALID
+                jt = judge_task(r, t) if r else reward.INVALID
             except Exception:  # noqa: BLE001 -- a failing judge is counted and skipped, like a malformed VLM answer
                 r, jt, e = None, reward.INVALID, e + 1
             try:
@@ -846,7 +858,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     videos = model.decode(ro.x1, frame0)
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
-    local = judge_rollouts(videos, tasks)
+    local = judge_rollouts(videos, tasks, args.task_reward)
     local["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher,
                                                motion_weight=args.distill_motion_weight)
                         if args.lambda_distill > 0 else torch.zeros(n))
@@ -886,7 +898,8 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     c_D = demo.condition(b.frame0, b.descs)
     ro, _ = _rollouts(demo, c_D, b.x_0, args, b.noises)
     ro.shard = b.shard
-    rewards = {k: _gather(v) for k, v in judge_rollouts(demo.decode(ro.x1, b.frame0), b.tasks).items()}
+    judged = judge_rollouts(demo.decode(ro.x1, b.frame0), b.tasks, args.task_reward)
+    rewards = {k: _gather(v) for k, v in judged.items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)

@@ -127,6 +127,15 @@ def test_state_write_is_atomic(tiny_ckpt, tmp_path, monkeypatch):
     assert not [f for f in os.listdir(tmp_path) if ".tmp" in f]
 
 
+def test_task_reward_attributed_trains_on_fig10s_judge(tiny_ckpt, tmp_path, monkeypatch):
+    """--task_reward attributed: every rollout's r_task is reward.judge_task_reward's (Fig. 10), not judge_task's."""
+    real, seen = train.reward.judge_task_reward, []
+    monkeypatch.setattr(train.reward, "judge_task_reward", lambda v, t: seen.append(t) or real(v, t))
+    train.rl_stage(_args(tiny_ckpt, tmp_path, steps=1, task_reward="attributed"))
+    args = _args(tiny_ckpt, tmp_path, steps=1)
+    assert len(seen) == args.tasks_per_step * args.group_size
+
+
 def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
@@ -175,6 +184,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
                       (["--beta_d", "0", "--state_window", "0.3,0.7"], "--state_window picks the states"),
                       (["--distill_motion_weight", "0"], "--distill_motion_weight must be > 0"),
+                      (["--task_reward", "fig10"], "--task_reward: unknown"),
+                      (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         r = run("train.py", *argv, "--run_dir", str(out))
@@ -239,7 +250,7 @@ def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path,
     texts, judged = [], []
     condition, judge = model.condition, train.judge_rollouts
     monkeypatch.setattr(model, "condition", lambda f, t: texts.append(list(t)) or condition(f, t))
-    monkeypatch.setattr(train, "judge_rollouts", lambda v, t: judged.append(list(t)) or judge(v, t))
+    monkeypatch.setattr(train, "judge_rollouts", lambda v, t, *a: judged.append(list(t)) or judge(v, t, *a))
     train.rl_step(1, model, opt, params, args, train.rl_config(args), frame0, tasks, descs, torch.Generator(),
                   prompts=prompts)
     G = args.group_size

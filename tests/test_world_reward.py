@@ -146,6 +146,22 @@ def test_wrong_agent_moving_is_caught():
     assert not reward.judge_agent(both, TASK).yes
 
 
+def test_training_task_reward_asks_for_the_addressed_agent_alone():
+    """Fig. 10 (judge_task_reward): solved by the end AND by the addressed agent alone; Fig. 15 (judge_task) only
+    looks at the end state, so it passes a video where a bystander moves too."""
+    good = reward.judge_task_reward(_video(SCENE, GOOD), TASK)
+    assert good.yes and good.score == min(reward.judge_task(_video(SCENE, GOOD), TASK).score,
+                                          reward.judge_agent(_video(SCENE, GOOD), TASK).score)
+    both = world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
+                        - world.simulate(SCENE, Plan(None)))   # the agent solves it while the green cross moves
+    assert reward.judge_task(both, TASK).yes
+    j = reward.judge_task_reward(both, TASK)
+    assert not j.yes and j.score < 0
+    wrong = reward.judge_task_reward(_video(SCENE, Plan(2, -1, 0, 2)), TASK)   # only the bystander moves
+    assert not wrong.yes
+    assert reward.judge_task_reward(np.zeros((3, 5, 5, 3)), TASK).score is None   # malformed: no judgment
+
+
 def test_vanishing_smear_and_new_object_are_caught():
     v = _video(SCENE, GOOD)
     gone = v.copy()
