@@ -131,8 +131,8 @@ def test_task_reward_attributed_trains_on_fig10s_judge(tiny_ckpt, tmp_path, monk
     """--task_reward attributed: every rollout's r_task is reward.judge_task_reward's (Fig. 10), not judge_task's."""
     real, seen = train.reward.judge_task_reward, []
     monkeypatch.setattr(train.reward, "judge_task_reward", lambda v, t: seen.append(t) or real(v, t))
-    train.rl_stage(_args(tiny_ckpt, tmp_path, steps=1, task_reward="attributed"))
-    args = _args(tiny_ckpt, tmp_path, steps=1)
+    args = _args(tiny_ckpt, tmp_path, steps=1, task_reward="attributed")
+    train.rl_stage(args)
     assert len(seen) == args.tasks_per_step * args.group_size
 
 
