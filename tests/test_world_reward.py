@@ -113,6 +113,12 @@ TASK = "[red square]: move to the blue circle"
 GOOD = Plan(0, 1, 0, 5)  # red square from x=2 to x=7: 4 px left of the blue circle
 
 
+def _agent_and_bystander():
+    """GOOD's video with the green cross moving too."""
+    return world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
+                        - world.simulate(SCENE, Plan(None)))
+
+
 def test_hand_made_scene_correct():
     j = reward.judge_all(_video(SCENE, GOOD), TASK)
     assert j["task"].yes and j["agent"].yes and j["consistency"].yes
@@ -141,19 +147,16 @@ def test_wrong_agent_moving_is_caught():
     wrong = _video(SCENE, Plan(2, -1, 0, 2))  # the green cross moves instead
     j = reward.judge_all(wrong, TASK)
     assert not j["agent"].yes and not j["task"].yes and j["consistency"].yes
-    both = world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
-                        - world.simulate(SCENE, Plan(None)))  # the agent and another sprite move
-    assert not reward.judge_agent(both, TASK).yes
+    assert not reward.judge_agent(_agent_and_bystander(), TASK).yes
 
 
 def test_training_task_reward_asks_for_the_addressed_agent_alone():
     """Fig. 10 (judge_task_reward): solved by the end AND by the addressed agent alone; Fig. 15 (judge_task) only
     looks at the end state, so it passes a video where a bystander moves too."""
-    good = reward.judge_task_reward(_video(SCENE, GOOD), TASK)
-    assert good.yes and good.score == min(reward.judge_task(_video(SCENE, GOOD), TASK).score,
-                                          reward.judge_agent(_video(SCENE, GOOD), TASK).score)
-    both = world.render(SCENE, world.simulate(SCENE, GOOD) + world.simulate(SCENE, Plan(2, 0, 1, 2))
-                        - world.simulate(SCENE, Plan(None)))   # the agent solves it while the green cross moves
+    v = _video(SCENE, GOOD)
+    good = reward.judge_task_reward(v, TASK)
+    assert good.yes and good.score == min(reward.judge_task(v, TASK).score, reward.judge_agent(v, TASK).score)
+    both = _agent_and_bystander()   # the agent solves it while the green cross moves
     assert reward.judge_task(both, TASK).yes
     j = reward.judge_task_reward(both, TASK)
     assert not j.yes and j.score < 0
