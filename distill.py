@@ -165,9 +165,9 @@ def make_fake_score(model, rank: int = 8, alpha: float = 16.0):
     starts equal to the Demonstrator's network), trained online on Executor samples by Eq. 18."""
     fake = copy.deepcopy(model)
     for m in fake.modules():  # fold any Executor adapters away: phi starts from the base weights
-        if isinstance(m, models.LoRALinear):
+        if isinstance(m, models.LoRA):
             m.lora_B.data.zero_()
-    if not any(isinstance(m, models.LoRALinear) for m in fake.modules()):
+    if not any(isinstance(m, models.LoRA) for m in fake.modules()):
         models.add_lora(fake, rank, alpha)
     for n, p in fake.named_parameters():
         p.requires_grad_("lora_" in n)

@@ -498,34 +498,50 @@ def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-class LoRALinear(nn.Module):
-    """y = W x + b + (alpha / r) B (A x), A: (r, in) random, B: (out, r) zeros -> equal to the base at init."""
+class LoRA(nn.Module):
+    """A low-rank update of one layer's weight, W' = W + (alpha / r) B A, with A: (r, fan_in) random and
+    B: (out, r) zeros, so the layer equals the base at init. For nn.Linear, y = W x + b + (alpha / r) B (A x); for
+    nn.Conv1d / nn.Conv2d (add_lora's convs), B A is reshaped to the kernel (out, in, k...) -- LoCon's form (a k x k
+    down-projection to r channels, a 1 x 1 up-projection), merged the same way."""
 
-    def __init__(self, base: nn.Linear, rank: int, alpha: float):
+    def __init__(self, base: nn.Module, rank: int, alpha: float):
         super().__init__()
         self.base, self.scale, self.enabled = base, alpha / rank, True
-        self.lora_A = nn.Parameter(torch.randn(rank, base.in_features) / math.sqrt(base.in_features))
-        self.lora_B = nn.Parameter(torch.zeros(base.out_features, rank))
+        fan_in = base.weight[0].numel()
+        self.lora_A = nn.Parameter(torch.randn(rank, fan_in) / math.sqrt(fan_in))
+        self.lora_B = nn.Parameter(torch.zeros(base.weight.shape[0], rank))
+
+    def delta(self) -> torch.Tensor:
+        return self.scale * (self.lora_B @ self.lora_A).view_as(self.base.weight)
 
     def forward(self, x):
-        y = self.base(x)
-        return y + self.scale * (x @ self.lora_A.T) @ self.lora_B.T if self.enabled else y
+        if not self.enabled:
+            return self.base(x)
+        if isinstance(self.base, nn.Linear):
+            return self.base(x) + self.scale * (x @ self.lora_A.T) @ self.lora_B.T
+        return self.base._conv_forward(x, self.base.weight + self.delta(), self.base.bias)
 
 
-def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str = r".*") -> list[str]:
-    """Wrap every nn.Linear whose qualified name matches `target` in a LoRALinear; freeze everything else.
-    Returns the wrapped names. (Table 3 uses rank 64 / alpha 128 on LTX-2's video attention.)"""
+def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str = r".*",
+             convs: bool = False) -> list[str]:
+    """Wrap every nn.Linear whose qualified name matches `target` in a LoRA; with convs, every nn.Conv1d/nn.Conv2d
+    too (the toy U-Net does most of its work in convolutions, where LTX-2's transformer does it in the Linear
+    layers that Table 3's LoRA covers). Freeze everything else. Returns the wrapped names. (Table 3 uses rank 64 /
+    alpha 128 on LTX-2's video attention.)"""
     if hasattr(model, "add_lora"):          # a backend with its own LoRA (LTX-2: peft through diffusers)
+        if convs:
+            raise ValueError("LoRA on convolutions is for the toy U-Net; a real backend's LoRA follows Table 3")
         return model.add_lora(rank, alpha) if target == r".*" else model.add_lora(rank, alpha, target)
-    names = [n for n, m in model.named_modules() if isinstance(m, nn.Linear) and re.fullmatch(target, n)]
+    kinds = (nn.Linear, nn.Conv1d, nn.Conv2d) if convs else (nn.Linear,)
+    names = [n for n, m in model.named_modules() if isinstance(m, kinds) and re.fullmatch(target, n)]
     if not names:
-        raise ValueError(f"LoRA target {target!r} matches no Linear layer")
+        raise ValueError(f"LoRA target {target!r} matches no {'Linear or conv' if convs else 'Linear'} layer")
     for p in model.parameters():
         p.requires_grad_(False)
     for n in names:
         parent_name, _, child = n.rpartition(".")
         parent = model.get_submodule(parent_name) if parent_name else model
-        setattr(parent, child, LoRALinear(getattr(parent, child), rank, alpha))
+        setattr(parent, child, LoRA(getattr(parent, child), rank, alpha))
     return names
 
 
@@ -534,24 +550,23 @@ def lora_parameters(model: nn.Module) -> list[nn.Parameter]:
 
 
 def merge_lora(model: nn.Module) -> nn.Module:
-    """A copy of `model` with every LoRA folded into its base weight, W' = W + (alpha / r) B A, as plain nn.Linear
-    layers: the same network as the base, so the Executor samples at exactly the base's cost. Adapters that are
-    switched off are dropped, not merged."""
+    """A copy of `model` with every LoRA folded into its base weight, W' = W + (alpha / r) B A, as plain layers:
+    the same network as the base, so the Executor samples at exactly the base's cost. Adapters that are switched
+    off are dropped, not merged."""
     out = copy.deepcopy(model)
     for n, m in list(out.named_modules()):
-        if isinstance(m, LoRALinear):
-            lin = m.base
+        if isinstance(m, LoRA):
             if m.enabled:
-                lin.weight.data += m.scale * m.lora_B.data @ m.lora_A.data
+                m.base.weight.data += m.delta().detach()
             parent_name, _, child = n.rpartition(".")
-            setattr(out.get_submodule(parent_name) if parent_name else out, child, lin)
+            setattr(out.get_submodule(parent_name) if parent_name else out, child, m.base)
     return out
 
 
 @contextlib.contextmanager
 def adapters_disabled(model: nn.Module):
     """Inside this block the model is the Demonstrator: the same base weights with every adapter switched off."""
-    layers = [m for m in model.modules() if isinstance(m, LoRALinear)]
+    layers = [m for m in model.modules() if isinstance(m, LoRA)]
     peft = [m for m in model.modules() if getattr(m, "_hf_peft_config_loaded", False)]   # diffusers + peft
     before = [m.enabled for m in layers]
     for m in layers:

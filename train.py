@@ -138,6 +138,9 @@ class Args:
     """LoRA rank (Table 3: 64 on LTX-2)"""
     lora_alpha: float = 16.0
     """LoRA alpha (Table 3: 128 = 2 x rank)"""
+    lora_convs: bool = False
+    """LoRA on the toy U-Net's convolutions too, not only its Linear layers (models.add_lora; README, "What the
+    Executor can learn given T")"""
     sample_steps: int = 10
     """Euler steps of every rollout, in training and evaluation"""
     error_rate: float = 0.3
@@ -298,6 +301,8 @@ def parse_args(argv=None) -> Args:
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
+    if args.model != "toy" and args.lora_convs:
+        p.error("--lora_convs is for the toy U-Net; a real backend's LoRA covers its video attention (Table 3)")
     if args.judge != "toy" and args.task_reward != "end_state":
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
@@ -514,7 +519,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model, _ = models.load_checkpoint(args.init or None)
-    models.add_lora(model, args.lora_rank, args.lora_alpha)
+    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     fake, fake_opt = None, None
@@ -1020,10 +1025,10 @@ def rl_stage(args: Args) -> dict:
     demo_net = demo_opt = demo_params = None
     if args.alternate > 0:       # Alg. 2: a Demonstrator phi of its own, trained in every N-th iteration
         demo_net = copy.deepcopy(model)
-        models.add_lora(demo_net, args.lora_rank, args.lora_alpha)
+        models.add_lora(demo_net, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
-    models.add_lora(model, args.lora_rank, args.lora_alpha)
+    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     cfg = rl_config(args)

@@ -42,15 +42,17 @@ def test_unknown_word_is_a_clear_error(small):
         world.parse_task("[red square]: jump over the blue circle")
 
 
-def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training():
+@pytest.mark.parametrize("convs", [False, True])
+def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(convs):
     torch.manual_seed(0)
     model = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
     torch.nn.init.normal_(model.out.weight, std=0.1)  # a fresh model ignores its input (zero-init output): fake a trained one
     x, t, c = _inputs(model, ["red square moves left 2 for 3 frames then stops", "camera pans up 1 for 2 frames then stops"])
     with torch.no_grad():
         base = model(x, t, c)
-    names = models.add_lora(model, rank=4, alpha=8)
+    names = models.add_lora(model, rank=4, alpha=8, convs=convs)
     assert len(names) > 10
+    assert any(isinstance(model.get_submodule(n).base, torch.nn.Conv2d) for n in names) == convs
     with torch.no_grad():
         assert torch.equal(model(x, t, c), base)  # B = 0 at init
     params = models.lora_parameters(model)
@@ -69,7 +71,7 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training()
     # merged: the Executor's outputs from a plain network with the base's parameter count (same sampling cost)
     merged = models.merge_lora(model)
     n_base = sum(p.numel() for n, p in model.named_parameters() if "lora_" not in n)
-    assert not any(isinstance(m, models.LoRALinear) for m in merged.modules())
+    assert not any(isinstance(m, models.LoRA) for m in merged.modules())
     assert sum(p.numel() for p in merged.parameters()) == n_base
     with torch.no_grad():
         assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)

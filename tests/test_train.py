@@ -186,6 +186,7 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--distill_motion_weight", "0"], "--distill_motion_weight must be > 0"),
                       (["--task_reward", "fig10"], "--task_reward: unknown"),
                       (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
+                      (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs is for the toy U-Net"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         r = run("train.py", *argv, "--run_dir", str(out))
