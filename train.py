@@ -680,6 +680,15 @@ def make_judge(args: Args):
 TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_task | reward.judge_task_reward
 
 
+def fig5_setting(args: Args) -> str:
+    """The name of the training setting the flags select (Fig. 5), for the final table's Executor row."""
+    if args.executor_update == "off":
+        return "off-policy distillation + RL on the teacher"
+    if args.beta_d == 0 and args.lambda_distill == 0:
+        return "RL from the judges alone"
+    return "WMSD, alternating (Alg. 2)" if args.alternate else "WMSD"
+
+
 def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end_state") -> dict:
     """Alg. 1 line 6: the judges' graded scores of each rollout as rewards (the toy judges' margins, or a VLM's
     log p(yes) - log p(no)). Where no judgment is possible -- a malformed video or answer, a missing agent, or a judge
@@ -1110,7 +1119,7 @@ def rl_stage(args: Args) -> dict:
         merged = model
         models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
     final = evaluate_executor(merged, args)
-    rows = {**fixed, f"WMSD ({args.trainer}, {given})": {k: final[k] for k in keys}}
+    rows = {**fixed, f"{fig5_setting(args)} ({args.trainer}, {given})": {k: final[k] for k in keys}}
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}

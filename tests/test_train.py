@@ -259,3 +259,11 @@ def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path,
     assert texts[:2] == [[train.world.instruction_form(getattr(pairs[i], field)) for i in (0, wrong) for _ in range(G)],
                          [d for d in descs for _ in range(G)]]
     assert judged == [[t for t in tasks for _ in range(G)]]
+
+
+def test_the_final_table_names_the_fig5_setting_the_flags_select():
+    name = lambda *argv: train.fig5_setting(train.parse_args(["--toy", *argv]))  # noqa: E731
+    assert name() == "WMSD"
+    assert name("--beta_d", "0", "--lambda_distill", "0") == "RL from the judges alone"
+    assert name("--alternate", "2") == "WMSD, alternating (Alg. 2)"
+    assert name("--alternate", "2", "--executor_update", "off") == "off-policy distillation + RL on the teacher"
