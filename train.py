@@ -681,7 +681,8 @@ TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_t
 
 
 def fig5_setting(args: Args) -> str:
-    """The name of the training setting the flags select (Fig. 5), for the final table's Executor row."""
+    """The name of the training setting the flags select (Fig. 5), for the final table's Executor row and the
+    curve's title."""
     if args.executor_update == "off":
         return "off-policy distillation + RL on the teacher"
     if args.beta_d == 0 and args.lambda_distill == 0:
@@ -1152,8 +1153,8 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
         ax.set_ylabel(f"bench {key} (Executor given T)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"WMSD on WorldTasks-toy: lambda_distill={args.lambda_distill}, beta_d={args.beta_d}, "
-                 f"lambda_cons={args.lambda_cons}, seed {args.seed}")
+    fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
+                 f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
