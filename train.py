@@ -115,6 +115,9 @@ class Args:
     """toy base with --relate: weight of pointing_loss in pretraining, which teaches Relate's head 0 to look at the
     mover the caption names and head 1 at the sprite a goal caption names as target, else the mover (0 = off: the
     heads learn only from the video loss, and did not learn to point, README)"""
+    point_goal_only: bool = False
+    """toy base with --point_weight: supervise head 1 only where a goal caption names a target, not at the mover
+    otherwise (the README's form (a); with the shared text encoder it broke D-following, so it is off)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
@@ -343,6 +346,8 @@ def parse_args(argv=None) -> Args:
         p.error("--ema must lie in [0, 1)")
     if args.point_weight < 0 or (args.point_weight and not args.relate):
         p.error("--point_weight must be >= 0 and supervises Relate's heads: it needs --relate")
+    if args.point_goal_only and not args.point_weight:
+        p.error("--point_goal_only changes what --point_weight supervises: it needs --point_weight > 0")
     if args.relate_text and not args.relate:
         p.error("--relate_text gives Relate its own text encoder: it needs --relate")
     return args
@@ -389,7 +394,8 @@ def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> to
     return flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
 
 
-def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.ndarray) -> torch.Tensor:
+def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.ndarray,
+                  goal_only: bool = False) -> torch.Tensor:
     """Toy base, --relate --point_weight: cross-entropy of Relate's head 0's attention over the first frame's pixels
     against the centre pixel of the mover the caption names, and of head 1's against the sprite the motion heads
     for: a goal caption's target, else the mover itself, so that head 1's offset is a direction only when the
@@ -399,9 +405,11 @@ def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.nda
     loss trains Relate's query MLP and keys (and, with --relate_text, Relate's own text encoder), not the text
     encoder the U-Net reads D through. Measured (README, "Teaching the offset heads to point"): with the gradient
     into the text encoder, and head 1 supervised on goal captions only, the heads pointed but D-following broke
-    (error-free D 0.345)."""
+    (error-free D 0.345). goal_only (--point_goal_only) is that form: no head-1 term where its place is the mover's."""
     a, _ = model.relate_attention(model.condition(frame0, captions), detach_text=True)  # (B, heads, HW)
-    pl = torch.as_tensor(places)
+    pl = torch.as_tensor(places).clone()
+    if goal_only:  # a goal caption's target is another sprite, at another place than the mover
+        pl[:, 1][(pl[:, 1] == pl[:, 0]).all(-1)] = float("nan")
     valid = ~pl.isnan().any(-1)                                                      # (B, 2)
     idx = (pl[..., 1].nan_to_num() * model.cfg.size + pl[..., 0].nan_to_num()).long()  # row-major pixel index
     logp = torch.log(a[:, :2].gather(-1, idx[..., None]).squeeze(-1).clamp(min=1e-12))  # (B, 2)
@@ -428,7 +436,7 @@ def pretrain(args: Args) -> dict:
                                                            args.p_goal, exclude, places=True)
         loss = video_loss(model, videos, captions, args)
         if args.point_weight:
-            point = pointing_loss(model, videos[:, 0], captions, places)
+            point = pointing_loss(model, videos[:, 0], captions, places, args.point_goal_only)
             run_point.append(point.item())
             loss = loss + args.point_weight * point
         opt.zero_grad(set_to_none=True)

@@ -285,6 +285,12 @@ def test_pointing_loss_is_the_cross_entropy_of_the_supervised_heads_at_the_named
         assert torch.allclose(both, -(a[0, 0, red].log() + a[0, 1, blue].log()) / 2)
         mover_only = train.pointing_loss(m, frame, captions, np.array([[[5, 6], [np.nan, np.nan]]], np.float32))
         assert torch.allclose(mover_only, -a[0, 0, red].log())
+        # --point_goal_only: head 1 at the mover is no goal, so no term; at a goal's target it is the full loss
+        at_mover = np.array([[[5, 6], [5, 6]]], np.float32)
+        assert torch.allclose(train.pointing_loss(m, frame, captions, at_mover, goal_only=True), mover_only)
+        assert not torch.allclose(train.pointing_loss(m, frame, captions, at_mover), mover_only)
+        assert torch.allclose(train.pointing_loss(m, frame, captions, np.array([[[5, 6], [11, 11]]], np.float32),
+                                                  goal_only=True), both)
         none = train.pointing_loss(m, frame, captions, np.full((1, 2, 2), np.nan, np.float32))
         assert none == 0
         # a head that looks at the red sprite is rewarded for the red place and punished for the blue one

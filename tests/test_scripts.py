@@ -88,6 +88,8 @@ def test_bad_input_gives_one_clear_error(tmp_path):
     assert r.returncode == 2 and "--beta_d must be >= 0" in r.stderr
     r = run("train.py", "--stage", "pretrain", "--point_weight", "0.1")
     assert r.returncode == 2 and "it needs --relate" in r.stderr
+    r = run("train.py", "--stage", "pretrain", "--relate", "--point_goal_only")
+    assert r.returncode == 2 and "it needs --point_weight > 0" in r.stderr
     r = run("train.py", "--stage", "pretrain", "--relate_text")
     assert r.returncode == 2 and "--relate_text gives Relate its own text encoder: it needs --relate" in r.stderr
     r = run("bench.py", "--pointing", "--n", "2")
