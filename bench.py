@@ -30,6 +30,7 @@ the end state, so a smear that reaches the goal passes it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -286,6 +287,57 @@ def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ER
                 hits[role + "_any"].append(d.min() <= 1)
     return {k: float(np.mean(v)) for k, v in hits.items()} | {"n_agent": len(hits["agent"]),
                                                               "n_target": len(hits["target"])}
+
+
+RELATE_PROBES = ("forced", "zeroed")
+
+
+@contextlib.contextmanager
+def _patched(obj, name: str, value):
+    """obj.name is `value` inside the with block; on exit the instance attribute goes and the class's is back."""
+    setattr(obj, name, value)
+    try:
+        yield
+    finally:
+        delattr(obj, name)
+
+
+def relate_probe(model, pairs: list, mode: str):
+    """Do a --relate base's U-Net read Relate's heads? (README, "Do the U-Nets of (f) and (e) read the heads?")
+    While active, Relate is altered for `pairs`, the bench pairs being evaluated, in order and in one batch (as
+    models.generate conditions up to 200 prompts at once). "forced": heads 0 and 1 attend uniformly over the 3x3
+    centre of the pair's true agent and target sprite, so they point in every pair; a head whose role names no
+    sprite (the camera) keeps its own attention. "zeroed": Relate's channels (offsets and maps) are all zero.
+    A context manager; the model is restored on exit. Bad input raises ValueError here, before the with block."""
+    if not getattr(model.cfg, "relate", False):
+        raise ValueError("--relate_probe alters Relate's heads: give a checkpoint pretrained with --relate")
+    if mode not in RELATE_PROBES:
+        raise ValueError(f"unknown relate probe {mode!r}; choose from {', '.join(RELATE_PROBES)}")
+    S, relate = model.cfg.size, model.relate
+    maps = torch.full((len(pairs), 2, S * S), float("nan"))            # the oracle's attention; NaN = keep own
+    for i, p in enumerate(pairs):
+        where = {s.name: (s.x, s.y) for s in p.scene.sprites}
+        for head, name in ((0, p.task.agent), (1, p.task.target)):
+            if name in where:
+                m = torch.zeros(S, S)
+                x, y = where[name]
+                m[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2] = 1
+                maps[i, head] = (m / m.sum()).flatten()
+    own_attend, own_forward = relate.attend, relate.forward
+
+    def forced_attend(pooled, frame0, coords):
+        a, _ = own_attend(pooled, frame0, coords)
+        if len(a) != len(pairs):
+            raise RuntimeError(f"relate_probe holds maps for {len(pairs)} pairs, Relate got a batch of {len(a)}")
+        keep = maps[..., 0].isnan()                                    # (n, 2)
+        a = a.clone()
+        a[:, :2] = torch.where(keep[..., None], a[:, :2], maps.to(a))
+        return a, torch.einsum("bhp,cp->bhc", a, coords.flatten(1))
+
+    def zeroed_forward(pooled, frame0, coords):
+        return torch.zeros_like(own_forward(pooled, frame0, coords))
+
+    return _patched(relate, "attend", forced_attend) if mode == "forced" else _patched(relate, "forward", zeroed_forward)
 
 
 def format_table(res: dict, title: str = "") -> str:
@@ -709,6 +761,9 @@ def main(argv=None):
                    "--group_size)")
     p.add_argument("--pointing", action="store_true",
                    help="a --relate base: how often its heads land on the task's agent and target given --condition")
+    p.add_argument("--relate_probe", choices=RELATE_PROBES, default=None,
+                   help="a --relate base, evaluated (or, forced, --pointing) with Relate altered: heads 0 and 1 forced "
+                        "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
     p.add_argument("--report", metavar="OUT_DIR", default=None,
                    help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
                         "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
@@ -752,6 +807,9 @@ def main(argv=None):
         p.error(f"--group must be >= 2 (a rank needs two rollouts), got {a.group}")
     if a.handoff is not None and a.rank_rdistill:
         p.error("--handoff and --rank_rdistill are two different diagnostics: give one")
+    if a.relate_probe and (a.handoff is not None or a.rank_rdistill or (a.pointing and a.relate_probe != "forced")):
+        p.error("--relate_probe alters one evaluation (or, forced, --pointing): not with --handoff, --rank_rdistill, "
+                "or --pointing with zeroed (the heads still look where they did; only their channels are gone)")
     if a.handoff is not None:
         conds = a.handoff.split(",")
         bad = [c for c in conds if c not in CONDITIONS]
@@ -764,7 +822,21 @@ def main(argv=None):
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     model.eval()
+    probe = contextlib.nullcontext()
+    if a.relate_probe:
+        try:
+            probe = relate_probe(model, world.bench_pairs(a.error_rate)[:a.n], a.relate_probe)
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+    with probe:
+        _run_one(a, model)
+
+
+def _run_one(a, model) -> None:
+    """main's single-checkpoint diagnostics and evaluation, once the model is loaded (and probed)."""
     if a.handoff is not None:
+        conds = a.handoff.split(",")
         res = handoff(model, *conds, n=a.n, seed=a.seed, error_rate=a.error_rate, steps=a.steps)
         res["checkpoint"] = a.checkpoint or "shipped base"
         own = [i for i, y in enumerate(res["task_per_pair"][-1]) if y]   # the pairs A alone solves
@@ -808,8 +880,9 @@ def main(argv=None):
             print(json.dumps(res))
         return
     res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps)
-    res["checkpoint"] = a.checkpoint or "shipped base"
-    print(format_table(res, f"checkpoint={res['checkpoint']} "))
+    res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
+    probed = f"relate_probe={a.relate_probe} " if a.relate_probe else ""
+    print(format_table(res, f"checkpoint={res['checkpoint']} {probed}"))
     if a.png:
         save_strip(videos, a.png)
         print(f"wrote {a.png}")

@@ -158,6 +158,43 @@ def test_handoff_switches_the_prompt_at_the_grid_time(tiny_ckpt, tmp_path):
     assert json.loads(r.stdout.splitlines()[-1])["task"] == res["task"]
 
 
+def test_relate_probe_forces_the_heads_or_zeroes_relate_and_then_restores_it(tiny_ckpt):
+    """bench.relate_probe: forced, heads 0 and 1 land on every pair's agent and target sprite; zeroed, the velocity
+    no longer depends on Relate's weights; on exit the model is as it was. A base without Relate is a clear error."""
+    import numpy as np
+    import torch
+
+    import bench
+    import models
+    import world
+    torch.manual_seed(0)
+    m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, relate=True).eval()
+    for p in m.parameters():                        # off the zero-initialised layers, so the U-Net reads Relate
+        p.data.add_(0.05 * torch.randn_like(p))
+    pairs = world.bench_pairs(0.3)[:12]
+    before = bench.pointing(m, "task", n=12)
+    assert before["agent"] < 1 and before["n_target"] > 0
+    with bench.relate_probe(m, pairs, "forced"):
+        forced = bench.pointing(m, "task", n=12)
+        with pytest.raises(RuntimeError, match="maps for 12 pairs"):
+            bench.pointing(m, "task", n=5)
+    assert forced["agent"] == forced["target"] == 1.0
+    assert bench.pointing(m, "task", n=12) == before
+    c = m.condition(np.stack([p.frame0 for p in pairs]), bench.prompts_for(pairs, "task"))
+    x, t = torch.randn(12, *m.latent_shape(), generator=torch.Generator().manual_seed(0)), torch.full((12,), 0.5)
+    with torch.no_grad():
+        as_is = m(x, t, c)
+        with bench.relate_probe(m, pairs, "zeroed"):
+            zeroed = m(x, t, c)
+            m.relate.q[-1].bias.add_(1.0)
+            assert torch.equal(m(x, t, c), zeroed)
+        assert not torch.allclose(m(x, t, c), zeroed) and not torch.allclose(as_is, zeroed)
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--relate_probe", "forced", "--n", "2")
+    assert r.returncode == 2 and "pretrained with --relate" in r.stderr
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--relate_probe", "zeroed", "--pointing")
+    assert r.returncode == 2 and "--pointing with zeroed" in r.stderr
+
+
 def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     """bench.rank_rdistill: Spearman against hand-made ranks (ties shared), and its per-rollout r_distill, motion and
     task judgment are those of the group's own rollouts, recomputed here from the same noise."""
