@@ -131,7 +131,9 @@ class Args:
     "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
     control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
     oracle_instruction (the error-free D in that form: the README's second control, where c_E carries the right
-    motion and the Demonstrator's D is still wrong at the toy VLM's error rate)"""
+    motion and the Demonstrator's D is still wrong at the toy VLM's error rate) | goal (T's words, and no more, as
+    the goal caption pretraining showed -- world.goal_caption: "red square moves to the blue circle"; the third
+    control, README: does the Executor fail given T for T's information or for its unseen form?)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -475,7 +477,8 @@ def pretrain(args: Args) -> dict:
 VARIANTS = ("off", "on", "dmd", "sft", "paired")
 # Args.executor_prompt -> how the tables and plots name it; each is a bench.prompts_for condition of that name
 EXECUTOR_PROMPTS = {"task": "T", "instruction": "the toy VLM's D in the task's form",
-                    "oracle_instruction": "the error-free D in the task's form"}
+                    "oracle_instruction": "the error-free D in the task's form",
+                    "goal": "T's words as a pretraining goal caption"}
 
 
 def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
