@@ -19,6 +19,7 @@
   python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
   python train.py --stage distill --variant off,on --executor_prompt instruction   # the positive control (README)
   python train.py --toy --executor_prompt oracle_instruction --steps 300   # the second control: c_E right, D not
+  python train.py --stage distill --variant off,on --executor_prompt goal --init B.pt  # third: T as a goal caption
   torchrun --nproc_per_node 2 train.py --toy --threads 1             # the same run on 2 processes
 """
 from __future__ import annotations
