@@ -337,7 +337,9 @@ def relate_probe(model, pairs: list, mode: str):
     def zeroed_forward(pooled, frame0, coords):
         return torch.zeros_like(own_forward(pooled, frame0, coords))
 
-    return _patched(relate, "attend", forced_attend) if mode == "forced" else _patched(relate, "forward", zeroed_forward)
+    if mode == "forced":
+        return _patched(relate, "attend", forced_attend)
+    return _patched(relate, "forward", zeroed_forward)
 
 
 def format_table(res: dict, title: str = "") -> str:
