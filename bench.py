@@ -16,7 +16,9 @@ Each video is judged by reward.py on Task / Agent / Consistency (always against 
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
 (ours, not a paper column) is the share of videos that solve the task *and* are plausible: the task judge reads only
-the end state, so a smear that reaches the goal passes it.
+the end state, so a smear that reaches the goal passes it. `by_agent` (ours too) is the share solved by the addressed
+agent alone (task and agent both yes), what Fig. 10's training task reward asks: the end state also passes a video in
+which a bystander moves the goal to the agent.
 
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
@@ -68,6 +70,9 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
     return [field(p) for p in pairs]
 
 
+JOINT = {"solved": ("task", "consistency"), "by_agent": ("task", "agent")}   # score_table's joint scores
+
+
 def score_table(judgments: list[dict]) -> dict:
     """judgments: per video {task|agent|consistency: reward.Judgment} -> scores, successes, valid, failures."""
     succ = {k: sum(bool(j[k].yes) for j in judgments) for k in KEYS}
@@ -77,11 +82,14 @@ def score_table(judgments: list[dict]) -> dict:
     valid["avg"] = len(full)
     out = {k: succ[k] / valid[k] if valid[k] else float("nan") for k in KEYS}
     out["avg"] = float(np.mean([out[k] for k in KEYS]))
-    # ours, not a paper column: the task solved *by a plausible video* (task and consistency both yes), over videos
-    # where both were judged. The task judge looks only at the end state, so a smear that reaches the goal passes it
-    both = [j for j in judgments if j["task"].yes is not None and j["consistency"].yes is not None]
-    succ["solved"], valid["solved"] = sum(bool(j["task"].yes and j["consistency"].yes) for j in both), len(both)
-    out["solved"] = succ["solved"] / len(both) if both else float("nan")
+    # ours, not paper columns: two judgments both yes, over the videos where both were judged. The task judge (Fig. 15)
+    # looks only at the end state, so it passes a smear that reaches the goal, and a bystander that moves the goal to
+    # the agent. solved: task and consistency (a plausible video); by_agent: task and agent, solved by the addressed
+    # agent alone -- what Fig. 10's training task reward asks (reward.judge_task_reward).
+    for name, (a, b) in JOINT.items():
+        both = [j for j in judgments if j[a].yes is not None and j[b].yes is not None]
+        succ[name], valid[name] = sum(bool(j[a].yes and j[b].yes) for j in both), len(both)
+        out[name] = succ[name] / len(both) if both else float("nan")
     out.update(successes=succ, valid=valid, failures={k: len(judgments) - valid[k] for k in valid}, n=len(judgments))
     return out
 
@@ -353,6 +361,9 @@ def format_table(res: dict, title: str = "") -> str:
     if "solved" in res:
         rows.append(f"solved by a plausible video (task and consistency both yes): {res['solved']:.3f} "
                     f"({res['successes']['solved']}/{res['valid']['solved']})")
+    if "by_agent" in res:
+        rows.append(f"solved by the addressed agent alone (task and agent both yes; Fig. 10's training task reward): "
+                    f"{res['by_agent']:.3f} ({res['successes']['by_agent']}/{res['valid']['by_agent']})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
     rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))

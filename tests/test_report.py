@@ -18,12 +18,15 @@ def _j(task, agent, cons):
 
 def test_denominators_count_discarded_judgments():
     seed0 = bench.score_table([_j(True, True, True), _j(None, True, False), _j(False, None, None)])
-    assert seed0["valid"] == {"task": 2, "agent": 2, "consistency": 2, "avg": 1, "solved": 1}
-    assert seed0["failures"] == {"task": 1, "agent": 1, "consistency": 1, "avg": 2, "solved": 2}
+    assert seed0["valid"] == {"task": 2, "agent": 2, "consistency": 2, "avg": 1, "solved": 1, "by_agent": 1}
+    assert seed0["failures"] == {"task": 1, "agent": 1, "consistency": 1, "avg": 2, "solved": 2, "by_agent": 2}
     assert seed0["task"] == 0.5 and seed0["agent"] == 1.0 and seed0["consistency"] == 0.5
     seed1 = bench.score_table([_j(True, False, True), _j(True, True, True)])
     # solved = task and consistency both yes: a task solved by an implausible video does not count
     assert bench.score_table([_j(True, True, False), _j(True, False, True), _j(False, True, True)])["solved"] == 1 / 3
+    # by_agent = task and agent both yes: an end state reached with a bystander moving (agent no) does not count
+    assert bench.score_table([_j(True, True, False), _j(True, False, True), _j(False, True, True)])["by_agent"] == 1 / 3
+    assert bench.score_table([_j(True, None, True), _j(True, True, True)])["valid"]["by_agent"] == 1
     # over seeds: successes and valid judgments add up; the failure rate is over all 5 videos
     assert bench.table4_cell([seed0, seed1], "task") == "0.750 (3/4; 20.0%)"
     assert bench.table4_cell([seed0, seed1], "agent") == "0.750 (3/4; 20.0%)"
