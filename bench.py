@@ -70,7 +70,10 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
     return [field(p) for p in pairs]
 
 
-JOINT = {"solved": ("task", "consistency"), "by_agent": ("task", "agent")}   # score_table's joint scores
+# score_table's joint scores (ours, not paper columns): name -> (judgment, judgment, what format_table prints)
+JOINT = {"solved": ("task", "consistency", "solved by a plausible video (task and consistency both yes)"),
+         "by_agent": ("task", "agent", "solved by the addressed agent alone (task and agent both yes; "
+                                       "Fig. 10's training task reward)")}
 
 
 def score_table(judgments: list[dict]) -> dict:
@@ -86,7 +89,7 @@ def score_table(judgments: list[dict]) -> dict:
     # looks only at the end state, so it passes a smear that reaches the goal, and a bystander that moves the goal to
     # the agent. solved: task and consistency (a plausible video); by_agent: task and agent, solved by the addressed
     # agent alone -- what Fig. 10's training task reward asks (reward.judge_task_reward).
-    for name, (a, b) in JOINT.items():
+    for name, (a, b, _) in JOINT.items():
         both = [j for j in judgments if j[a].yes is not None and j[b].yes is not None]
         succ[name], valid[name] = sum(bool(j[a].yes and j[b].yes) for j in both), len(both)
         out[name] = succ[name] / len(both) if both else float("nan")
@@ -358,12 +361,9 @@ def format_table(res: dict, title: str = "") -> str:
         s = res["successes"][k]
         rows.append(f"| {k:11s} | {res[k]:.3f} | {s if isinstance(s, int) else round(s, 1)}/{res['valid'][k]} | "
                     f"{res['failures'][k]} ({100 * res['failures'][k] / max(res['n'], 1):.1f}%) |")
-    if "solved" in res:
-        rows.append(f"solved by a plausible video (task and consistency both yes): {res['solved']:.3f} "
-                    f"({res['successes']['solved']}/{res['valid']['solved']})")
-    if "by_agent" in res:
-        rows.append(f"solved by the addressed agent alone (task and agent both yes; Fig. 10's training task reward): "
-                    f"{res['by_agent']:.3f} ({res['successes']['by_agent']}/{res['valid']['by_agent']})")
+    for name, (_, _, label) in JOINT.items():
+        if name in res:   # results saved before a joint score existed lack it
+            rows.append(f"{label}: {res[name]:.3f} ({res['successes'][name]}/{res['valid'][name]})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
     rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
