@@ -26,8 +26,8 @@ which a bystander moves the goal to the agent.
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
-  python bench.py --report results            # the whole reproduction report (README "Reproduction report")
-  python bench.py --report /tmp/r --quick     # the same plumbing with tiny runs, in a few minutes
+The reproduction report (every experiment over seeds, into tables and figures) is report.py; it evaluates with
+this file's `evaluate` and draws with its plotting helpers.
 """
 from __future__ import annotations
 
@@ -204,7 +204,7 @@ def handoff(model, cond_a: str, cond_b: str, n: int = 200, seed: int = 0, error_
 
 def plot_handoff(res: dict, path: str) -> None:
     """Left: the bench scores against the switch time t_k; right: Eq. 4's discrepancy along A's trajectories."""
-    plt, fig, (ax, ax2) = _plot(2, width=4.6)
+    plt, fig, (ax, ax2) = figure(2, width=4.6)
     for key in ("task", "solved", "consistency"):
         ax.plot(res["switch"], res[key], marker="o", ms=3, label=key)
     ax.set_xlabel(f"switch time t_k: {res['cond_a']} before, {res['cond_b']} from it on")
@@ -217,7 +217,7 @@ def plot_handoff(res: dict, path: str) -> None:
     ax2.set_ylabel(f"|| v(. | {res['cond_a']}) - v(. | {res['cond_b']}) ||^2 (Eq. 4)")
     ax2.grid(alpha=0.3)
     fig.suptitle(f"{res.get('checkpoint', '')}: {res['n']} bench pairs, noise seed {res['seed']}", fontsize=10)
-    _save(plt, fig, path)
+    save_figure(plt, fig, path)
 
 
 def _spearman(a, b) -> float:
@@ -386,6 +386,51 @@ def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> 
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
+def mean_sd(xs) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for one value) over seeds."""
+    xs = np.asarray(list(xs), float)
+    return float(xs.mean()), float(xs.std(ddof=1)) if len(xs) > 1 else 0.0
+
+
+def fmt(xs, digits: int = 3) -> str:
+    """"mean ± sd" over seeds."""
+    m, sd = mean_sd(xs)
+    return f"{m:.{digits}f} ± {sd:.{digits}f}"
+
+
+def figure(panels: int, width: float = 5.2):
+    """A row of `panels` matplotlib axes (Agg backend: no display needed); returns (plt, fig, axes)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, panels, figsize=(width * panels, 3.6), squeeze=False)
+    return plt, fig, list(axes[0])
+
+
+def save_figure(plt, fig, path: str) -> None:
+    """Write fig to path as a PNG and free it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def curve_band(ax, runs: list[list[dict]], key: str, label: str) -> None:
+    """Mean over seeds of eval curves (lists of {step, key}) with a min-max band."""
+    steps = sorted(set.intersection(*[{e["step"] for e in r} for r in runs]))
+    vals = np.array([[next(e[key] for e in r if e["step"] == s) for s in steps] for r in runs])
+    line, = ax.plot(steps, vals.mean(0), marker="o", ms=3, label=label)
+    if len(runs) > 1:
+        ax.fill_between(steps, vals.min(0), vals.max(0), color=line.get_color(), alpha=0.15)
+
+
+def file_digest(path: str) -> str:
+    """The first 16 hex digits of a file's SHA-256: which base checkpoint a run started from (the key of report.py's
+    run reuse and of train.py's --eval_cache)."""
+    import hashlib
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()[:16]
+
+
 def read_run(run_dir: str) -> dict:
     """A train.py rl run: its evaluations (step, task, agent, consistency, avg) from rl.jsonl, and the fixed rows
     (base given T, Demonstrator) from rl_summary.json when the run finished."""
@@ -421,7 +466,7 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
                     f"{cell([e['task'] for e in end])} | {cell([e['consistency'] for e in end])} | "
                     f"{cell([e['agent'] for e in end])} |")
     if path:
-        plt, fig, axes = _plot(2, width=5.5)
+        plt, fig, axes = figure(2, width=5.5)
         demo = next((r["fixed"].get(DEMO_ROW) for rs in groups.values() for r in rs if r["fixed"]), None)
         prompts = {r["prompt"] for rs in groups.values() for r in rs}
         given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
@@ -437,316 +482,8 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         axes[0].legend(fontsize=7)
         band = "" if seeds == {1} else "; mean over seeds, min-max band"
         fig.suptitle(f"Executor given {given}{band}", fontsize=10)
-        _save(plt, fig, path)
+        save_figure(plt, fig, path)
     return "\n".join(rows)
-
-
-# ================================================================================================================
-# the reproduction report: every experiment below, over seeds, into one folder of tables and figures
-# ================================================================================================================
-
-# name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
-EXPERIMENTS = {
-    "wmsd": ("rl", []),                                                    # Tab. 1/4, Figs. 4R (b=1), 5 (ii), 7, 8
-    "no_anchor": ("rl", ["--beta_d", "0", "--lambda_distill", "0"]),       # Fig. 5 (i): RL from the judges alone
-    "teacher_rl": ("rl", ["--alternate", "2", "--executor_update", "off"]),  # Fig. 5 (iii): off-policy + RL on D
-    "alternate": ("rl", ["--alternate", "2"]),                             # Fig. 5 (iv): Alg. 2
-    "no_cons": ("rl", ["--lambda_cons", "0"]),                             # Fig. 8
-    "beta_0.1": ("rl", ["--beta_d", "0.1"]),                               # Fig. 4 right
-    "beta_0.01": ("rl", ["--beta_d", "0.01"]),
-    "beta_0": ("rl", ["--beta_d", "0"]),
-    "err_0": ("rl", ["--error_rate", "0"]),                                # gain over the Demonstrator vs VLM errors
-    "err_0.5": ("rl", ["--error_rate", "0.5"]),
-    "distill": ("distill", ["--variant", "off,on,dmd,sft,paired"]),        # Fig. 4 left; Tab. 1's SFT rows
-}
-BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}
-ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
-FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
-        "alternate": "(iv) alternating (Alg. 2)"}
-BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its numbers mean nothing)
-    "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"],
-             "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"]},
-    "quick": {"rl": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--tasks_per_step", "2", "--group_size", "2",
-                     "--train_pairs", "8", "--sample_steps", "3"],
-              "distill": ["--steps", "2", "--eval_every", "1", "--eval_n", "6", "--batch", "4", "--train_pairs", "8",
-                          "--sample_steps", "3"]},
-}
-SUMMARY = {"rl": "rl_summary.json", "distill": "distill_summary.json"}
-
-
-def file_digest(path: str) -> str:
-    """The first 16 hex digits of a file's SHA-256: which base checkpoint a report run started from."""
-    import hashlib
-    with open(path, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()[:16]
-
-
-def finished_run(d: str, stage: str, cmd: list, base: str) -> bool:
-    """Whether run dir d holds a finished run of this command from this base checkpoint (then the report reuses
-    it; a rebuilt base, or changed flags, means the run is done again)."""
-    import os
-    done = os.path.join(d, "report_cmd.json")
-    if not (os.path.isfile(done) and os.path.isfile(os.path.join(d, SUMMARY[stage]))):
-        return False
-    rec = json.load(open(done))
-    return rec["cmd"] == cmd and rec.get("base") == base
-
-
-def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init: str = "") -> dict:
-    """Run every (experiment, seed) of EXPERIMENTS that `out`/runs does not already hold finished with the same
-    command, `jobs` at a time (each train.py with 2 // jobs threads). Returns {(name, seed): run_dir}. A run that
-    fails stops the report with its log's last lines; finished runs are kept, so a rerun picks up where it
-    stopped. The runs share one --eval_cache: the base's own evaluations are computed once, not in every run."""
-    import os
-    import subprocess
-    from concurrent.futures import ThreadPoolExecutor
-    todo, dirs, base = [], {}, file_digest(init or models.SHIPPED_BASE)
-    for name, (stage, flags) in EXPERIMENTS.items():
-        for seed in seeds:
-            d = os.path.join(out, "runs", f"{name}_s{seed}")
-            cmd = [sys.executable, os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), "--stage",
-                   stage, "--seed", str(seed), "--run_dir", d, "--eval_cache", os.path.join(out, "runs", "eval_cache"),
-                   *BUDGETS[budget][stage], *flags,
-                   *(["--init", init] if init else [])]
-            dirs[(name, seed)] = d
-            if not finished_run(d, stage, cmd[2:], base):
-                todo.append((name, seed, d, cmd))
-    todo.sort(key=lambda item: item[0] != "distill")   # the longest runs first, so no core idles at the end
-    print(f"report: {len(dirs) - len(todo)} of {len(dirs)} runs already done; running {len(todo)}, {jobs} at a time",
-          flush=True)
-    start, finished = time.time(), []
-
-    def one(item):
-        name, seed, d, cmd = item
-        os.makedirs(d, exist_ok=True)
-        t0 = time.time()
-        with open(os.path.join(d, "log.txt"), "w") as log:
-            rc = subprocess.run(cmd + ["--threads", str(max(1, 2 // jobs))], stdout=log, stderr=subprocess.STDOUT).returncode
-        if rc != 0:
-            tail = open(os.path.join(d, "log.txt")).read().splitlines()[-8:]
-            raise RuntimeError(f"run {name} seed {seed} failed (exit {rc}); {d}/log.txt ends:\n" + "\n".join(tail))
-        json.dump({"cmd": cmd[2:], "base": base, "minutes": (time.time() - t0) / 60},
-                  open(os.path.join(d, "report_cmd.json"), "w"))
-        finished.append(name)
-        print(f"report: [{len(finished)}/{len(todo)}] {name} seed {seed} done in {(time.time() - t0) / 60:.1f} min "
-              f"({(time.time() - start) / 60:.1f} min so far)", flush=True)
-
-    with ThreadPoolExecutor(jobs) as pool:
-        for f in [pool.submit(one, item) for item in todo]:
-            f.result()
-    return dirs
-
-
-def mean_sd(xs) -> tuple[float, float]:
-    """Mean and sample standard deviation (0 for one value) over seeds."""
-    xs = np.asarray(list(xs), float)
-    return float(xs.mean()), float(xs.std(ddof=1)) if len(xs) > 1 else 0.0
-
-
-def fmt(xs, digits: int = 3) -> str:
-    m, sd = mean_sd(xs)
-    return f"{m:.{digits}f} ± {sd:.{digits}f}"
-
-
-def table4_cell(results: list[dict], key: str) -> str:
-    """Tab. 4's cell over seeds: mean score (successes / valid summed over seeds; failure rate)."""
-    succ = sum(r["successes"][key] for r in results)
-    valid = sum(r["valid"][key] for r in results)
-    n = sum(r["n"] for r in results)
-    score = succ / valid if valid else float("nan")
-    s = f"{succ:g}" if key != "avg" else f"{succ:.1f}"
-    return f"{score:.3f} ({s}/{valid}; {100 * (n - valid) / max(n, 1):.1f}%)"
-
-
-def _plot(panels: int, width: float = 5.2):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, panels, figsize=(width * panels, 3.6), squeeze=False)
-    return plt, fig, list(axes[0])
-
-
-def _save(plt, fig, path: str) -> None:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def curve_band(ax, runs: list[list[dict]], key: str, label: str) -> None:
-    """Mean over seeds of eval curves (lists of {step, key}) with a min-max band."""
-    steps = sorted(set.intersection(*[{e["step"] for e in r} for r in runs]))
-    vals = np.array([[next(e[key] for e in r if e["step"] == s) for s in steps] for r in runs])
-    line, = ax.plot(steps, vals.mean(0), marker="o", ms=3, label=label)
-    if len(runs) > 1:
-        ax.fill_between(steps, vals.min(0), vals.max(0), color=line.get_color(), alpha=0.15)
-
-
-def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
-    """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
-    the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
-    import os
-    rows, lines = {}, []
-    base, _ = models.load_checkpoint(init or None)
-    base.eval()
-    finals = {}
-    for seed in seeds:
-        ev = lambda m, cond: evaluate(m, cond, n, seed)[0]  # noqa: E731
-        rows.setdefault("Base (T)", []).append(ev(base, "task"))
-        rows.setdefault("Base + SFT (T)", []).append(
-            ev(models.load_checkpoint(os.path.join(dirs[("distill", seed)], "executor_sft.pt"))[0], "task"))
-        rows.setdefault("Base + paired SFT (T; correct executions: a reference, not WMSD)", []).append(
-            ev(models.load_checkpoint(os.path.join(dirs[("distill", seed)], "executor_paired.pt"))[0], "task"))
-        rows.setdefault("Base + VLM (the Demonstrator: the toy VLM's D)", []).append(ev(base, "vlm"))
-        for name in ("wmsd", "no_cons"):
-            m = models.load_checkpoint(os.path.join(dirs[(name, seed)], "executor_awm.pt"))[0]
-            res, videos, pairs = evaluate(m, "task", n, seed)
-            finals[(name, seed)] = (res, videos)
-            if name == "wmsd":
-                rows.setdefault("WMSD (T)", []).append(res)
-    K = (*KEYS, "avg")
-    # Table 1 and Table 4
-    lines += ["## Table 1: WorldTasks-toy bench", "",
-              f"Mean ± sd over seeds {seeds}; {n} bench pairs; s/video = sampling seconds per video on this machine "
-              "(the toy VLM writes D in well under a millisecond, so +VLM costs the same).", "",
-              "`solved` (ours, not a paper column): task and consistency both yes -- the task judge reads only the end "
-              "state, so a smear that reaches the goal passes it.", "",
-              "| model | task | agent | consistency | avg | solved | s/video |", "|---|---|---|---|---|---|---|"]
-    for name, rs in rows.items():
-        lines.append(f"| {name} | " + " | ".join(fmt(r[k] for r in rs) for k in (*K, "solved")) +
-                     f" | {mean_sd(r['seconds_per_video'] for r in rs)[0]:.4f} |")
-    lines += ["", "## Table 4: successes / valid judgments (failure rate), summed over seeds", "",
-              "| model | task | agent | consistency | avg | solved |", "|---|---|---|---|---|---|"]
-    for name, rs in rows.items():
-        lines.append(f"| {name} | " + " | ".join(table4_cell(rs, k) for k in (*K, "solved")) + " |")
-    # Fig. 4 left: self-distillation variants (and SFT) vs step
-    dist = [json.load(open(os.path.join(dirs[("distill", s)], "distill_summary.json"))) for s in seeds]
-    plt, fig, (ax,) = _plot(1, 6)
-    for v in dist[0]["variants"]:
-        curve_band(ax, [d["variants"][v] for d in dist], "task", v)
-    ax.axhline(mean_sd(d["demonstrator"]["task"] for d in dist)[0], color="k", ls="--", lw=1, label="Demonstrator")
-    ax.set(xlabel="step", ylabel="bench task (Executor given T)", title="Fig. 4 left: self-distillation variants")
-    ax.legend(fontsize=7)
-    _save(plt, fig, os.path.join(out, "fig4_left.png"))
-    lines += ["", "## Fig. 4 left: self-distillation variants", "", "![](fig4_left.png)", "",
-              "| variant | task @0 | task @end | consistency @end |", "|---|---|---|---|"]
-    for v in dist[0]["variants"]:
-        lines.append(f"| {v} | {fmt(d['variants'][v][0]['task'] for d in dist)} | "
-                     f"{fmt(d['variants'][v][-1]['task'] for d in dist)} | "
-                     f"{fmt(d['variants'][v][-1]['consistency'] for d in dist)} |")
-    # Fig. 4 right: task score vs beta_d
-    curves = {name: [read_run(dirs[(name, s)]) for s in seeds] for name in EXPERIMENTS if name != "distill"}
-    plt, fig, (ax,) = _plot(1, 5)
-    for what, pick in (("end", lambda ev: ev[-1]["task"]), ("peak", lambda ev: max(e["task"] for e in ev))):
-        ms = [mean_sd(pick(r["evals"]) for r in curves[name]) for name in BETAS]
-        ax.errorbar(list(BETAS.values()), [m for m, _ in ms], [sd for _, sd in ms], marker="o", capsize=3,
-                    label=f"task @{what}")
-    ax.set_xscale("symlog", linthresh=0.01)
-    ax.set(xlabel="β_d (anchor weight)", ylabel="bench task (Executor given T)", title="Fig. 4 right: anchor weight")
-    ax.legend(fontsize=7)
-    _save(plt, fig, os.path.join(out, "fig4_right.png"))
-    lines += ["", "## Fig. 4 right: task score vs the anchor weight β_d", "", "![](fig4_right.png)", "",
-              "| β_d | task peak | task @end | consistency @end |", "|---|---|---|---|"]
-    for name, b in BETAS.items():
-        lines.append(f"| {b:g} | {fmt(max(e['task'] for e in r['evals']) for r in curves[name])} | "
-                     f"{fmt(r['evals'][-1]['task'] for r in curves[name])} | "
-                     f"{fmt(r['evals'][-1]['consistency'] for r in curves[name])} |")
-    # Fig. 5: the four training settings
-    demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]
-    plt, fig, axes = _plot(2)
-    for ax, key in zip(axes, ("task", "consistency")):
-        for name, label in FIG5.items():
-            curve_band(ax, [r["evals"] for r in curves[name]], key, label)
-        ax.axhline(mean_sd(d[key] for d in demo)[0], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
-        ax.set(xlabel="step", ylabel=f"bench {key} (Executor given T)")
-    axes[0].legend(fontsize=7)
-    axes[0].set_title("Fig. 5: training settings")
-    _save(plt, fig, os.path.join(out, "fig5.png"))
-    lines += ["", "## Fig. 5: training settings", "", "![](fig5.png)", "",
-              "| setting | task @0 | task peak | task @end | agent @end | consistency @end |", "|---|---|---|---|---|---|"]
-    for name, label in FIG5.items():
-        rs = curves[name]
-        lines.append(f"| {label} | {fmt(r['evals'][0]['task'] for r in rs)} | "
-                     f"{fmt(max(e['task'] for e in r['evals']) for r in rs)} | "
-                     + " | ".join(fmt(r["evals"][-1][k] for r in rs) for k in ("task", "agent", "consistency")) + " |")
-    lines.append(f"| Demonstrator (toy VLM's D) | | | {fmt(d['task'] for d in demo)} | {fmt(d['agent'] for d in demo)} | "
-                 f"{fmt(d['consistency'] for d in demo)} |")
-    # Fig. 7: per task family and per agent type
-    groups = {"Base (T)": rows["Base (T)"], "Demonstrator": rows["Base + VLM (the Demonstrator: the toy VLM's D)"],
-              "WMSD (T)": rows["WMSD (T)"]}
-    plt, fig, axes = _plot(2)
-    lines += ["", "## Fig. 7: task score per task family, agent score per agent type", "", "![](fig7.png)", "",
-              "| model | " + " | ".join(f"task: {f}" for f in rows["Base (T)"][0]["families"]) + " | " +
-              " | ".join(f"agent: {a}" for a in rows["Base (T)"][0]["agent_types"]) + " |",
-              "|---|" + "---|" * (len(rows["Base (T)"][0]["families"]) + len(rows["Base (T)"][0]["agent_types"]))]
-    for ax, part, key in zip(axes, ("families", "agent_types"), ("task", "agent")):
-        names = list(rows["Base (T)"][0][part])
-        for i, (label, rs) in enumerate(groups.items()):
-            ms = [mean_sd(r[part][g][0] / max(r[part][g][1], 1) for r in rs) for g in names]
-            ax.bar(np.arange(len(names)) + 0.27 * (i - 1), [m for m, _ in ms], 0.27, yerr=[sd for _, sd in ms],
-                   capsize=2, label=label)
-        sizes = [rows["Base (T)"][0][part][g][1] for g in names]
-        ax.set_xticks(np.arange(len(names)), [f"{g}\n(n={k})" for g, k in zip(names, sizes)])
-        ax.set(ylabel=f"bench {key} score", ylim=(0, 1.05))
-    axes[0].legend(fontsize=7)
-    _save(plt, fig, os.path.join(out, "fig7.png"))
-    for label, rs in groups.items():
-        cells = [fmt(r[part][g][0] / max(r[part][g][1], 1) for r in rs)
-                 for part in ("families", "agent_types") for g in rs[0][part]]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    sizes = ", ".join(f"{g} {v}" for part in ("families", "agent_types")
-                      for g, (_, v) in rows["Base (T)"][0][part].items())
-    lines.append(f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.")
-    # Fig. 8: with and without the consistency reward
-    a, b = (finals[(name, seeds[0])][1][:6] for name in ("wmsd", "no_cons"))
-    sep = np.full((*a.shape[:3], 1, 3), 255, np.uint8)         # a white column between the two videos of a row
-    save_strip(np.concatenate([a, sep, b], axis=3), os.path.join(out, "fig8.png"), rows=6, scale=5)
-    lines += ["", "## Fig. 8: with and without the consistency reward", "",
-              f"Frames of the first 6 bench videos (seed {seeds[0]}), left WMSD, right WMSD without r_cons:", "",
-              "![](fig8.png)", "", "| | task | agent | consistency |", "|---|---|---|---|"]
-    for name, label in (("wmsd", "WMSD"), ("no_cons", "without the consistency reward")):
-        rs = [finals[(name, s)][0] for s in seeds]
-        lines.append(f"| {label} | " + " | ".join(fmt(r[k] for r in rs) for k in KEYS) + " |")
-    # beyond the paper: the Executor's gain over the Demonstrator vs the toy VLM's error rate
-    plt, fig, (ax,) = _plot(1, 5)
-    lines += ["", "## Beyond the paper: gain over the Demonstrator vs the toy VLM's error rate", "",
-              "![](error_rate.png)", "", "| error rate | Demonstrator task | WMSD task @end | gain |", "|---|---|---|---|"]
-    pts = []
-    for name, e in ERRORS.items():
-        d = [r["fixed"][DEMO_ROW]["task"] for r in curves[name]]
-        x = [r["evals"][-1]["task"] for r in curves[name]]
-        gain = [b - a for a, b in zip(d, x)]
-        pts.append((e, mean_sd(d), mean_sd(x), mean_sd(gain)))
-        lines.append(f"| {e:g} | {fmt(d)} | {fmt(x)} | {fmt(gain, 3)} |")
-    for i, label in ((1, "Demonstrator (toy VLM's D)"), (2, "WMSD Executor (T)")):
-        ax.errorbar([p[0] for p in pts], [p[i][0] for p in pts], [p[i][1] for p in pts], marker="o", capsize=3,
-                    label=label)
-    ax.set(xlabel="toy VLM error rate", ylabel="bench task score", title="Executor vs Demonstrator")
-    ax.legend(fontsize=7)
-    _save(plt, fig, os.path.join(out, "error_rate.png"))
-    md = "\n".join(lines) + "\n"
-    with open(os.path.join(out, "report.md"), "w") as f:
-        f.write(md)
-    return md
-
-
-REPORT_FILES = ("report.md", "fig4_left.png", "fig4_right.png", "fig5.png", "fig7.png", "fig8.png", "error_rate.png")
-
-
-def report(out: str, seeds: list[int], quick: bool, jobs: int = 2, init: str = "") -> None:
-    import os
-    os.makedirs(out, exist_ok=True)
-    start = time.time()
-    dirs = run_experiments(out, seeds, "quick" if quick else "full", jobs, init)
-    md = write_report(out, dirs, seeds, 6 if quick else 200, init)
-    minutes = (time.time() - start) / 60
-    run_minutes = sum(json.load(open(os.path.join(d, "report_cmd.json")))["minutes"] for d in dirs.values())
-    with open(os.path.join(out, "report.md"), "a") as f:
-        f.write(f"\nWritten by `python bench.py --report {out}{' --quick' if quick else ''} --seeds "
-                f"{' '.join(map(str, seeds))} --jobs {jobs}`: {len(dirs)} runs whose own wall times sum to "
-                f"{run_minutes:.1f} min ({jobs} at a time, {max(1, 2 // jobs)} thread(s) each, on {os.cpu_count()} "
-                f"CPU cores); this invocation took {minutes:.1f} min (runs already finished are reused).\n")
-    print(md)
-    print(f"wrote {', '.join(os.path.join(out, f) for f in REPORT_FILES)} in {minutes:.1f} min")
 
 
 def main(argv=None):
@@ -777,30 +514,7 @@ def main(argv=None):
     p.add_argument("--relate_probe", choices=RELATE_PROBES, default=None,
                    help="a --relate base, evaluated (or, forced, --pointing) with Relate altered: heads 0 and 1 forced "
                         "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
-    p.add_argument("--report", metavar="OUT_DIR", default=None,
-                   help="instead of evaluating: run every experiment of the reproduction report over --seeds (or "
-                        "reuse finished runs in OUT_DIR/runs) and write its tables and figures to OUT_DIR")
-    p.add_argument("--quick", action="store_true", help="with --report: tiny runs that check the plumbing")
-    p.add_argument("--seeds", type=int, nargs="+", default=None, help="with --report: training seeds (default 0 1 2; "
-                   "--quick: 0 1)")
-    p.add_argument("--jobs", type=int, default=2, help="with --report: runs at a time (each gets 2 // jobs threads)")
     a = p.parse_args(argv)
-    if a.report:
-        if a.jobs < 1:
-            p.error(f"--jobs must be >= 1, got {a.jobs}")
-        if a.checkpoint:
-            try:
-                models.load_checkpoint(a.checkpoint)
-            except (FileNotFoundError, ValueError) as e:
-                print(f"error: {e}", file=sys.stderr)
-                sys.exit(2)
-        torch.set_num_threads(a.threads)
-        try:
-            report(a.report, a.seeds or ([0, 1] if a.quick else [0, 1, 2]), a.quick, a.jobs, a.checkpoint or "")
-        except RuntimeError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(1)
-        return
     if a.compare:
         try:
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}

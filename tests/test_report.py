@@ -1,10 +1,11 @@
-"""bench.py's reproduction report: its arithmetic over seeds, its denominators, and a --quick run end to end."""
+"""report.py, the reproduction report: its arithmetic over seeds, its denominators, and a --quick run end to end."""
 import json
 import os
 
 import pytest
 
 import bench
+import report
 import reward
 from conftest import run
 
@@ -28,9 +29,9 @@ def test_denominators_count_discarded_judgments():
     assert bench.score_table([_j(True, True, False), _j(True, False, True), _j(False, True, True)])["by_agent"] == 1 / 3
     assert bench.score_table([_j(True, None, True), _j(True, True, True)])["valid"]["by_agent"] == 1
     # over seeds: successes and valid judgments add up; the failure rate is over all 5 videos
-    assert bench.table4_cell([seed0, seed1], "task") == "0.750 (3/4; 20.0%)"
-    assert bench.table4_cell([seed0, seed1], "agent") == "0.750 (3/4; 20.0%)"
-    assert bench.table4_cell([seed0, seed1], "avg") == "0.889 (2.7/3; 40.0%)"
+    assert report.table4_cell([seed0, seed1], "task") == "0.750 (3/4; 20.0%)"
+    assert report.table4_cell([seed0, seed1], "agent") == "0.750 (3/4; 20.0%)"
+    assert report.table4_cell([seed0, seed1], "avg") == "0.889 (2.7/3; 40.0%)"
 
 
 def test_consistency_faults_count_videos_per_kind():
@@ -62,40 +63,40 @@ def test_subgroup_scores_for_fig7():
 
 def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
     out = tmp_path / "report"
-    r = run("bench.py", "--report", str(out), "--quick", "--checkpoint", tiny_ckpt)
+    r = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
     assert r.returncode == 0, r.stderr[-2000:]
-    for f in bench.REPORT_FILES:
+    for f in report.REPORT_FILES:
         assert (out / f).exists() and (out / f).stat().st_size > 100, f
     md = (out / "report.md").read_text()
     for heading in ("Table 1", "Table 4", "Fig. 4 left", "Fig. 4 right", "Fig. 5", "Fig. 7", "Fig. 8", "error rate"):
         assert heading in md, heading
     assert "| Base + SFT (T) |" in md and "| WMSD (T) |" in md and " ± " in md
-    runs = len(bench.EXPERIMENTS) * 2
+    runs = len(report.EXPERIMENTS) * 2
     assert f"0 of {runs} runs already done" in r.stdout and f"[{runs}/{runs}]" in r.stdout
     cmd = json.load(open(out / "runs" / "wmsd_s1" / "report_cmd.json"))["cmd"]
     assert cmd[cmd.index("--seed") + 1] == "1" and "--quick" not in cmd
-    again = run("bench.py", "--report", str(out), "--quick", "--checkpoint", tiny_ckpt)
+    again = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
     assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
 
 
 def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
     d = str(tmp_path)
-    assert not bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # nothing there
+    assert not report.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # nothing there
     json.dump({"cmd": ["--seed", "0"], "base": "aaaa", "minutes": 1.0}, open(tmp_path / "report_cmd.json", "w"))
-    assert not bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # no summary: it did not finish
-    (tmp_path / bench.SUMMARY["rl"]).write_text("{}")
-    assert bench.finished_run(d, "rl", ["--seed", "0"], "aaaa")
-    assert not bench.finished_run(d, "rl", ["--seed", "1"], "aaaa")                  # other flags
-    assert not bench.finished_run(d, "rl", ["--seed", "0"], "bbbb")                  # a rebuilt base
+    assert not report.finished_run(d, "rl", ["--seed", "0"], "aaaa")                  # no summary: it did not finish
+    (tmp_path / report.SUMMARY["rl"]).write_text("{}")
+    assert report.finished_run(d, "rl", ["--seed", "0"], "aaaa")
+    assert not report.finished_run(d, "rl", ["--seed", "1"], "aaaa")                  # other flags
+    assert not report.finished_run(d, "rl", ["--seed", "0"], "bbbb")                  # a rebuilt base
     (tmp_path / "ck.pt").write_bytes(b"x")
     assert bench.file_digest(str(tmp_path / "ck.pt")) == "2d711642b726b044"       # sha256(b"x")[:16]
 
 
 def test_report_bad_input(tmp_path):
-    r = run("bench.py", "--report", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
+    r = run("report.py", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
     assert r.returncode == 2 and "does not exist" in r.stderr
     assert not os.listdir(tmp_path)
-    r = run("bench.py", "--report", str(tmp_path), "--jobs", "0")
+    r = run("report.py", str(tmp_path), "--jobs", "0")
     assert r.returncode == 2 and "--jobs" in r.stderr
 
 
