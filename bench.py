@@ -26,6 +26,7 @@ which a bystander moves the goal to the agent.
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
+
 The reproduction report (every experiment over seeds, into tables and figures) is report.py; it evaluates with
 this file's `evaluate` and draws with its plotting helpers.
 """
@@ -393,7 +394,7 @@ def mean_sd(xs) -> tuple[float, float]:
 
 
 def fmt(xs, digits: int = 3) -> str:
-    """"mean ± sd" over seeds."""
+    """Mean ± sd over seeds as one string, e.g. "0.200 ± 0.141"."""
     m, sd = mean_sd(xs)
     return f"{m:.{digits}f} ± {sd:.{digits}f}"
 
