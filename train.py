@@ -629,10 +629,7 @@ def distill_stage(args: Args) -> dict:
 
 
 def plot_fig4_left(results: dict, path: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    plt, fig, axes = bench.figure(2, width=5)
     prompt = results.get("executor_prompt", "task")
     for ax, key in zip(axes, ("task", "avg")):
         for v, evals in results["variants"].items():
@@ -644,9 +641,7 @@ def plot_fig4_left(results: dict, path: str) -> None:
     axes[0].legend(fontsize=8)
     given = EXECUTOR_PROMPTS[prompt] + ("" if prompt == "task" else " (a control)")
     fig.suptitle(f"Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)\nExecutor given {given}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    bench.save_figure(plt, fig, path)
 
 
 def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
@@ -1155,10 +1150,7 @@ def rl_stage(args: Args) -> dict:
 
 
 def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
+    plt, fig, axes = bench.figure(3, width=4)
     for ax, key in zip(axes, ("task", "consistency", "avg")):
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
         ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
@@ -1168,9 +1160,7 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
                  f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    bench.save_figure(plt, fig, path)
 
 
 STAGES = {"pretrain": pretrain, "distill": distill_stage, "rl": rl_stage}
