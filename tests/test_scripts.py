@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from conftest import ROOT, run
+from conftest import ROOT, exit_2, run
 
 
 def test_distill_stage_smoke(tiny_ckpt, tmp_path):
@@ -69,37 +69,28 @@ def test_help_lists_every_flag_with_its_doc():
     assert run("bench.py", "--help").returncode == 0
 
 
-def test_bad_input_gives_one_clear_error(tmp_path):
+def test_bad_input_gives_one_clear_error(tmp_path, capsys):
+    import bench
+    import train
     r = run("bench.py", "--condition", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
-    r = run("bench.py", "--handoff", "task,bogus")
-    assert r.returncode == 2 and "--handoff wants A,B" in r.stderr
+    assert "--handoff wants A,B" in exit_2(bench.main, ["--handoff", "task,bogus"], capsys)
     r = run("train.py", "--stage", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
-    r = run("train.py", "--steps", "0")
-    assert r.returncode == 2 and "--steps must be >= 1" in r.stderr
-    r = run("train.py", "--variant", "on,bogus")
-    assert r.returncode == 2 and "unknown 'bogus'" in r.stderr
-    r = run("train.py", "--trainer", "ppo")
-    assert r.returncode == 2 and "--trainer: unknown 'ppo'" in r.stderr
-    r = run("train.py", "--group_size", "1")
-    assert r.returncode == 2 and "--group_size must be >= 2" in r.stderr
-    r = run("train.py", "--beta_d", "-0.1")
-    assert r.returncode == 2 and "--beta_d must be >= 0" in r.stderr
-    r = run("train.py", "--stage", "pretrain", "--point_weight", "0.1")
-    assert r.returncode == 2 and "it needs --relate" in r.stderr
-    r = run("train.py", "--stage", "pretrain", "--relate", "--point_goal_only")
-    assert r.returncode == 2 and "it needs --point_weight > 0" in r.stderr
-    r = run("train.py", "--stage", "pretrain", "--relate_text")
-    assert r.returncode == 2 and "--relate_text gives Relate its own text encoder: it needs --relate" in r.stderr
-    r = run("bench.py", "--pointing", "--n", "2")
-    assert r.returncode == 2 and "pretrained with --relate" in r.stderr
+    for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--variant", "on,bogus"], "unknown 'bogus'"),
+                      (["--trainer", "ppo"], "--trainer: unknown 'ppo'"),
+                      (["--group_size", "1"], "--group_size must be >= 2"), (["--beta_d", "-0.1"], "--beta_d must be >= 0"),
+                      (["--stage", "pretrain", "--point_weight", "0.1"], "it needs --relate"),
+                      (["--stage", "pretrain", "--relate", "--point_goal_only"], "it needs --point_weight > 0"),
+                      (["--stage", "pretrain", "--relate_text"],
+                       "--relate_text gives Relate its own text encoder: it needs --relate")):
+        assert msg in exit_2(train.main, argv, capsys), argv
+    assert "pretrained with --relate" in exit_2(bench.main, ["--pointing", "--n", "2"], capsys)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
     r = run("bench.py", "--checkpoint", str(bad), "--n", "2")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
-    r = run("bench.py", "--checkpoint", str(tmp_path / "missing.pt"), "--n", "2")
-    assert r.returncode == 2 and "does not exist" in r.stderr
+    assert "does not exist" in exit_2(bench.main, ["--checkpoint", tmp_path / "missing.pt", "--n", "2"], capsys)
 
 
 def test_compare_runs_on_fake_runs(tmp_path):

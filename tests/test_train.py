@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import train
-from conftest import ROOT, run
+from conftest import ROOT, exit_2, run
 
 TINY = ["--toy", "--group_size", "2", "--tasks_per_step", "2", "--eval_every", "2", "--eval_n", "4",
         "--train_pairs", "8", "--sample_steps", "3", "--save_every", "1", "--threads", "1"]
@@ -136,27 +136,28 @@ def test_task_reward_attributed_trains_on_fig10s_judge(tiny_ckpt, tmp_path, monk
     assert len(seen) == args.tasks_per_step * args.group_size
 
 
-def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
+def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
     out = tmp_path / "never"
     r = run("train.py", "--init", str(bad), "--run_dir", str(out))
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
     assert not out.exists()
-    r = run("train.py", *TINY, "--init", tiny_ckpt, "--run_dir", str(out), "--resume")
-    assert r.returncode == 2 and "no state to resume" in r.stderr and not out.exists()
+    assert "no state to resume" in exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--run_dir", out, "--resume"], capsys)
+    assert not out.exists()
     # a state from other settings is refused, not silently continued
     d = tmp_path / "run"
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "1", "--run_dir", str(d)).returncode == 0
-    r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume", "--beta_d", "0.5")
-    assert r.returncode == 2 and "--beta_d 1.0 (now 0.5)" in r.stderr
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume", "--beta_d", "0.5"],
+                 capsys)
+    assert "--beta_d 1.0 (now 0.5)" in err
     # a state from before a setting existed resumes with that setting at its default, and only then
     state = torch.load(d / "state.pt", weights_only=True)
     del state["args"]["state_window"]
     torch.save(state, d / "state.pt")
-    r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume",
-            "--state_window", "0.5,1")
-    assert r.returncode == 2 and "--state_window '' (now '0.5,1')" in r.stderr, r.stderr
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume",
+                              "--state_window", "0.5,1"], capsys)
+    assert "--state_window '' (now '0.5,1')" in err, err
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume").returncode == 0
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
@@ -170,8 +171,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                             (p.task.text, "red square teleports away", "unknown word")):
         (tmp_path / "d.jsonl").write_text(json.dumps({"image": "f.png", "task": p.task.text, "description": p.d_oracle})
                                           + "\n" + json.dumps({"image": "f.png", "task": task, "description": desc}) + "\n")
-        r = run("train.py", *TINY, "--init", tiny_ckpt, "--dataset", str(tmp_path / "d.jsonl"), "--run_dir", str(out))
-        assert r.returncode == 2 and "d.jsonl line 2" in r.stderr and msg in r.stderr and not out.exists(), r.stderr
+        err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--dataset", tmp_path / "d.jsonl", "--run_dir", out], capsys)
+        assert "d.jsonl line 2" in err and msg in err and not out.exists(), err
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--group_size", "1"], "--group_size must be >= 2"),
                       (["--beta_d", "-1"], "--beta_d must be >= 0"), (["--sampler", "euler"], "--sampler: unknown"),
                       (["--adv_agg", "mean"], "--adv_agg: unknown"),
@@ -189,8 +190,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path):
                       (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs is for the toy U-Net"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
-        r = run("train.py", *argv, "--run_dir", str(out))
-        assert r.returncode == 2 and msg in r.stderr and not out.exists(), (argv, r.stderr)
+        err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
+        assert msg in err and not out.exists(), (argv, err)
 
 
 def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settings(tiny_ckpt, tmp_path, monkeypatch):
