@@ -340,32 +340,39 @@ def candidate_tasks(scene: Scene) -> list[Task]:
 _MOTIONS = np.array(ALL_MOTIONS)  # (M, 3): vx, vy, k
 
 
-def _all_positions(scene: Scene, mover: int) -> np.ndarray:
-    """simulate() for every motion in ALL_MOTIONS at once: (M, F, n, 2)."""
+def motion_table(scene: Scene, mover: int) -> tuple[np.ndarray, np.ndarray]:
+    """simulate() and plan_is_valid() for every motion in ALL_MOTIONS of one mover at once: positions (M, F, n, 2)
+    and valid (M,). It depends only on (scene, mover), so the candidate tasks of a scene share it."""
     pos = np.array([[s.x, s.y] for s in scene.sprites])
     steps = np.minimum(np.arange(F)[None], _MOTIONS[:, 2:3])[..., None] * _MOTIONS[:, None, :2]  # (M, F, 2)
     out = np.broadcast_to(pos, (len(_MOTIONS), F, *pos.shape)).copy()
     if mover == -1:
-        out -= steps[:, :, None]
-    else:
-        out[:, :, mover] += steps
-    return out
+        return out - steps[:, :, None], np.ones(len(_MOTIONS), bool)
+    out[:, :, mover] += steps
+    p = out[:, :, mover]                                                  # (M, F, 2)
+    inside = (p.min((1, 2)) >= 1) & (p.max((1, 2)) <= W - 2)
+    others = np.delete(out, mover, axis=2)                                # (M, F, n - 1, 2)
+    apart = (np.abs(others - p[:, :, None]).max(-1) >= 3).all((1, 2))
+    return out, inside & apart
 
 
-def solutions(scene: Scene, task: Task) -> list[Plan]:
+def solutions(scene: Scene, task: Task, tables: dict | None = None) -> list[Plan]:
     """All constant-velocity plans that solve `task`, are valid, and stop exactly when they solve it (they are not
-    solved one frame earlier). Empty if the task is already solved at frame 0."""
+    solved one frame earlier). Empty if the task is already solved at frame 0. `tables`: a dict of motion_table
+    results by mover, filled as needed (pass one dict for all tasks of a scene to compute each table once)."""
     mover = -1 if task.agent == FIRST_PERSON else scene.names().index(task.agent)
-    pos = _all_positions(scene, mover)                                   # (M, F, n, 2)
-    margins = _margins(scene, task, pos)                                 # (M, F)
+    tables = {} if tables is None else tables
+    if mover not in tables:
+        tables[mover] = motion_table(scene, mover)
+    pos, valid = tables[mover]                                            # (M, F, n, 2), (M,)
+    margins = _margins(scene, task, pos)                                  # (M, F)
     if margins[0, 0] >= 0:
         return []
     k = _MOTIONS[:, 2]
-    ok = (margins[np.arange(len(k)), k] >= 0) & (margins[np.arange(len(k)), k - 1] < 0)
+    ok = (margins[np.arange(len(k)), k] >= 0) & (margins[np.arange(len(k)), k - 1] < 0) & valid
     if task.kind == "level_with":
         ok &= _MOTIONS[:, 0] == 0  # "stop level with": a vertical move, as a person would read it
-    plans = [Plan(mover, int(vx), int(vy), int(kk)) for vx, vy, kk in _MOTIONS[ok]]
-    return [p for p in plans if plan_is_valid(scene, p)]
+    return [Plan(mover, int(vx), int(vy), int(kk)) for vx, vy, kk in _MOTIONS[ok]]
 
 
 def canonical_solution(sols: list[Plan]) -> Plan:
@@ -402,8 +409,9 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
     err_rng = err_rng or rng
     scene = Scene(read_sprites(frame0), background=int(np.median(frame0)))
     by_family: dict[str, list[tuple[Task, list[Plan]]]] = {}
+    tables: dict = {}
     for task in candidate_tasks(scene):
-        sols = solutions(scene, task)
+        sols = solutions(scene, task, tables)
         if sols:
             by_family.setdefault(task.family, []).append((task, sols))
     out = []
@@ -501,9 +509,9 @@ def goal_caption(task: Task) -> str:
 
 def goal_clip(scene: Scene, rng: np.random.Generator):
     """A random feasible task of `scene` and its canonical solution, or None if the scene has none."""
-    tasks = candidate_tasks(scene)
+    tasks, tables = candidate_tasks(scene), {}
     for i in rng.permutation(len(tasks)):
-        sols = solutions(scene, tasks[i])
+        sols = solutions(scene, tasks[i], tables)
         if sols:
             return tasks[i], canonical_solution(sols)
     return None

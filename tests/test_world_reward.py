@@ -29,6 +29,19 @@ def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
     assert videos.shape == (64, world.F, world.H, world.W, 3)
 
 
+def test_motion_table_is_simulate_and_plan_is_valid_for_every_motion():
+    """The planner's vectorised table (world.motion_table) agrees with the one-plan functions it stands in for."""
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        scene = world.random_scene(rng)
+        for mover in [-1, *range(len(scene.sprites))]:
+            pos, valid = world.motion_table(scene, mover)
+            plans = [Plan(mover, vx, vy, k) for vx, vy, k in world.ALL_MOTIONS]
+            assert all((pos[i] == world.simulate(scene, p)).all() for i, p in enumerate(plans))
+            assert valid.tolist() == [world.plan_is_valid(scene, p) for p in plans]
+            assert 0 < valid.sum() <= len(plans)
+
+
 def test_sft_labels_are_short_tasks_the_video_solves_or_trivial_moves():
     """The +SFT baseline's labeller: a derived task must be one the judge says the labelled video solves."""
     rng = np.random.default_rng(0)
