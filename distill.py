@@ -118,10 +118,11 @@ def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teach
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
                    window: tuple | None = None, motion_weight: float = 1.0) -> torch.Tensor:
     """Eq. 5: L_on = E_{(x_t, t) ~ p_theta(. | c_E)} l_theta(x_t, t) = E_tau int_0^1 l_theta(x_t, t) dt, on the
-    Executor's own states. Its gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log
-    p_theta(tau)] that moves the state distribution, and a direct regression term E[grad C_theta(tau)]. Back-
-    propagating through the sampler is impractical, so on sampled states held fixed this returns the direct term
-    only -- which is exactly the anchor of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
+    Executor's own states, with C_theta(tau) = int_0^1 l_theta(x_t, t) dt the trajectory's cost (Eq. 6). Its
+    gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log p_theta(tau)] that moves the
+    state distribution, and a direct regression term E[grad C_theta(tau)]. Backpropagating through the sampler is
+    impractical, so on sampled states held fixed this returns the direct term only -- which is exactly the anchor
+    of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
     return anchor_loss(model, student_traj, c_E, c_D, generator, window=window, motion_weight=motion_weight)
 
 
@@ -194,7 +195,10 @@ def _denoise(model, x_t, t, c):
 
 
 def dmd_generator_loss(model, fake, x: torch.Tensor, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
-    """Eqs. 19/21: the Executor's samples x = G_theta(z, c_E) (with gradient) are re-noised by Eq. 15,
+    """DMD minimises D_KL(p_fake || p_real) = E_{x ~ p_fake}[log p_fake(x) / p_real(x)] (Eq. 13), whose gradient
+    is E_z[-(s_real(x) - s_fake(x)) dG_theta(z)/dtheta] (Eq. 14); here p_fake is the Executor's p_theta(. | c_E) and
+    p_real the Demonstrator's p_theta'(. | c_D), the KL of Eq. 20. Eqs. 19/21 estimate that gradient on noisy
+    samples: the Executor's samples x = G_theta(z, c_E) (with gradient) are re-noised by Eq. 15,
     q_t(x_t | x) = N(alpha_t x, sigma_t^2 I) with alpha_t = t, sigma_t = 1 - t in our convention, and pushed along
 
         grad_theta D_KL ~ E[ w_t alpha_t (s_fake(x_t, t | c_E) - s_real(x_t, t | c_D)) dG/dtheta ],

@@ -481,7 +481,8 @@ def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
 
 @torch.no_grad()
 def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
-    """Sample one video per (first frame, prompt) with the Euler ODE sampler (Eq. 2) from seeded noise x_0.
+    """Sample one video per (first frame, prompt), tau ~ p(tau | I, text) of Eq. 1, with the Euler ODE sampler
+    (Eq. 2) from seeded noise x_0.
     Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
     x_0 = seeded_noise(model, len(texts), seed)
     out = []

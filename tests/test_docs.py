@@ -47,3 +47,45 @@ def test_ci_runs_the_readmes_test_command():
     command = re.search(r"## Tests\s+```bash\n(.+?)\n```", readme).group(1).strip()
     ci = open(os.path.join(ROOT, ".ci", "run"), encoding="utf-8").read().strip().splitlines()
     assert ci[-1].strip() == command
+
+
+def cited(doc: str) -> set:
+    """Equation numbers a docstring cites: "Eq. 9", "Eqs. 3, 4, 9, 11", "Eqs. 19/21", "Eqs. 21-22" (a range)."""
+    nums = set()
+    for group in re.findall(r"Eqs?\.\s*([0-9][0-9,/\-– ]*(?:and [0-9]+)?)", doc):
+        for part in re.split(r"[,/ ]|and", group):
+            a, _, b = part.replace("–", "-").partition("-")
+            if a.isdigit():
+                nums |= set(range(int(a), int(b) + 1)) if b.isdigit() else {int(a)}
+    return nums
+
+
+def test_cited_reads_lists_and_ranges():
+    assert cited("Eq. 9: r = ...; Eqs. 3, 4, 9, 11 and Eqs. 19/21, Eqs. 13–15; Eq. 2, d x") == \
+        {2, 3, 4, 9, 11, 13, 14, 15, 19, 21}
+
+
+def test_equation_index_names_functions_that_cite_them():
+    """README's "Every equation" table: each name resolves to a function whose docstring cites the row's equations
+    (or App./Alg./reference label), together the row's functions cite all of them, and Eqs. 1-22 all have a row."""
+    import importlib
+    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    table = readme.split("### Every equation, and the function that holds it", 1)[1].split("\n\n")[2]
+    rows = [r.split(" | ") for r in table.splitlines()[2:]]
+    covered, bad = set(), []
+    for paper, _, where in rows:
+        paper, names = paper.strip("| "), re.findall(r"`([\w.]+)`", where)
+        want = cited(paper) or {paper}
+        got = set()
+        for name in names:
+            module, _, attr = name.rpartition(".")
+            doc = getattr(importlib.import_module(module), attr).__doc__ or ""
+            have = cited(doc) if paper.startswith("Eq") else ({paper} if paper in doc else set())
+            if not have & want:
+                bad.append(f"{name} cites none of {paper}")
+            got |= have
+        if not want <= got:
+            bad.append(f"{paper}: {sorted(map(str, want - got))} cited by none of {names}")
+        covered |= want
+    assert not bad, "\n".join(bad)
+    assert set(range(1, 23)) <= covered, sorted(set(range(1, 23)) - covered)
