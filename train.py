@@ -1155,11 +1155,12 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
         ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
         ax.set_xlabel("RL step")
-        ax.set_ylabel(f"bench {key} (Executor given T)")
+        ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
+    given = EXECUTOR_PROMPTS[args.executor_prompt] + ("" if args.executor_prompt == "task" else " (a control)")
     fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
-                 f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}")
+                 f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\nExecutor given {given}")
     bench.save_figure(plt, fig, path)
 
 
