@@ -482,6 +482,11 @@ EXECUTOR_PROMPTS = {"task": "T", "instruction": "the toy VLM's D in the task's f
                     "goal": "T's words as a pretraining goal caption"}
 
 
+def executor_given(prompt: str) -> str:
+    """What the Executor is given under --executor_prompt, for a plot's title: "T", or a control's prompt."""
+    return EXECUTOR_PROMPTS[prompt] + ("" if prompt == "task" else " (a control)")
+
+
 def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
     """(first frames uint8 (B, H, W, 3), the Executor's prompts, the toy VLM's descriptions D) of the chosen pairs.
     The Executor's prompt is the task T, or a control's prompt (Args.executor_prompt)."""
@@ -630,7 +635,6 @@ def distill_stage(args: Args) -> dict:
 
 def plot_fig4_left(results: dict, path: str) -> None:
     plt, fig, axes = bench.figure(2, width=5)
-    prompt = results.get("executor_prompt", "task")
     for ax, key in zip(axes, ("task", "avg")):
         for v, evals in results["variants"].items():
             ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor, {v}")
@@ -639,7 +643,7 @@ def plot_fig4_left(results: dict, path: str) -> None:
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    given = EXECUTOR_PROMPTS[prompt] + ("" if prompt == "task" else " (a control)")
+    given = executor_given(results.get("executor_prompt", "task"))
     fig.suptitle(f"Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)\nExecutor given {given}")
     bench.save_figure(plt, fig, path)
 
@@ -1158,9 +1162,9 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    given = EXECUTOR_PROMPTS[args.executor_prompt] + ("" if args.executor_prompt == "task" else " (a control)")
     fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
-                 f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\nExecutor given {given}")
+                 f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\n"
+                 f"Executor given {executor_given(args.executor_prompt)}")
     bench.save_figure(plt, fig, path)
 
 

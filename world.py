@@ -152,12 +152,16 @@ def plan_is_valid(scene: Scene, plan: Plan) -> bool:
     """A moving sprite stays fully in view and never overlaps another sprite (so nothing is ever occluded)."""
     if plan.mover is None or plan.mover == -1:
         return True
-    pos = simulate(scene, plan)
-    p = pos[:, plan.mover]
-    if p.min() < 1 or p.max() > W - 2:
-        return False
-    others = np.delete(pos, plan.mover, axis=1)
-    return bool((np.abs(others - p[:, None]).max(-1) >= 3).all())
+    return bool(_stays_clear(simulate(scene, plan), plan.mover))
+
+
+def _stays_clear(pos: np.ndarray, mover: int) -> np.ndarray:
+    """plan_is_valid's rule on sprite centres pos (..., F, n, 2) with sprite `mover` moving: its 3x3 box stays fully
+    in view, and its centre keeps >= 3 px (Chebyshev) from every other sprite's in every frame. -> (...) bool."""
+    p = pos[..., mover, :]                                                # (..., F, 2)
+    inside = (p.min((-2, -1)) >= 1) & (p.max((-2, -1)) <= W - 2)
+    others = np.delete(pos, mover, axis=-2)                               # (..., F, n - 1, 2)
+    return inside & (np.abs(others - p[..., None, :]).max(-1) >= 3).all((-2, -1))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -349,11 +353,7 @@ def motion_table(scene: Scene, mover: int) -> tuple[np.ndarray, np.ndarray]:
     if mover == -1:
         return out - steps[:, :, None], np.ones(len(_MOTIONS), bool)
     out[:, :, mover] += steps
-    p = out[:, :, mover]                                                  # (M, F, 2)
-    inside = (p.min((1, 2)) >= 1) & (p.max((1, 2)) <= W - 2)
-    others = np.delete(out, mover, axis=2)                                # (M, F, n - 1, 2)
-    apart = (np.abs(others - p[:, :, None]).max(-1) >= 3).all((1, 2))
-    return out, inside & apart
+    return out, _stays_clear(out, mover)
 
 
 def solutions(scene: Scene, task: Task, tables: dict | None = None) -> list[Plan]:
