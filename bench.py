@@ -135,13 +135,14 @@ def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
-             steps: int = 10, judge=None) -> tuple[dict, np.ndarray, list]:
+             steps: int = 10, judge=None, batch: int = 200) -> tuple[dict, np.ndarray, list]:
     """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
-    Figs. 15-17). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+    Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch). Returns (result dict, videos
+    uint8 (n, F, H, W, 3), pairs)."""
     pairs = world.bench_pairs(error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
-    videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed)
+    videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed, batch=batch)
     seconds = time.time() - t0
     t1 = time.time()
     if judge is None:

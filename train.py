@@ -194,6 +194,13 @@ class Args:
     """G: rollouts per (image, task) whose rewards are compared (paper: 24)"""
     tasks_per_step: int = 4
     """distinct (image, T, D) per step; rollouts per step = tasks_per_step x group_size"""
+    micro_batch: int = 0
+    """rl stage: the most rollouts (or bench videos) one forward or backward pass holds in each process; 0 = all of
+    the process's at once. The update is the same: gradients are summed over micro-batches, each weighted by its
+    share and drawing what the whole batch draws. For a real model whose step does not fit in memory at once"""
+    grad_checkpoint: bool = False
+    """real models: recompute the transformer's activations in the backward pass instead of keeping them (diffusers'
+    gradient checkpointing): less memory for more compute, the same gradients"""
     sampler: str = "ode"
     """rollout sampler for awm / nft: ode | sde (flow-grpo and grpo always use the SDE: they need its log-probs)"""
     noise_level: float = 0.7
@@ -342,6 +349,12 @@ def parse_args(argv=None) -> Args:
         p.error(f"--executor_prompt {args.executor_prompt} is a toy control for the objectives: --stage rl, or "
                 "--stage distill with --variant off, on or dmd (the SFT baselines train on T); toy model and toy "
                 "VLM pairs only")
+    if args.micro_batch < 0:
+        p.error(f"--micro_batch must be >= 0 (0: no micro-batches), got {args.micro_batch}")
+    if args.micro_batch and args.stage != "rl":
+        p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
+    if args.grad_checkpoint and args.model == "toy":
+        p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
     if args.eval_n > 200:
         p.error("--eval_n must be at most 200 (the bench size)")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -501,7 +514,8 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     ctx = models.adapters_disabled(model) if demonstrator is True else contextlib.nullcontext()
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
-                                        error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE)
+                                        error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE,
+                                        batch=args.micro_batch or 200)
     return res
 
 
@@ -654,9 +668,11 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     from PIL import Image
     pairs = world.bench_pairs(args.error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
+    batch = args.micro_batch or n
     with models.adapters_disabled(model):
-        demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0)
-    exe = models.generate(model, frame0, bench.prompts_for(pairs, args.executor_prompt), args.sample_steps, seed=0)
+        demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
+    exe = models.generate(model, frame0, bench.prompts_for(pairs, args.executor_prompt), args.sample_steps, seed=0,
+                          batch=batch)
     sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
     grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3): F of the model
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
@@ -824,12 +840,23 @@ def _rollouts(net, c: dict, x_0: torch.Tensor, args: Args, noises: torch.Tensor 
     return rl.Rollouts(xs, ts, c, log_probs, args.noise_level), torch.stack(vs)
 
 
-def _update(step: int, opt, params, loss: torch.Tensor, what: str) -> float:
-    """Backpropagate, average the LoRA gradients over processes (the same update a single process makes on the
-    whole batch), clip (Table 3: max grad norm 1), step."""
-    _check_finite(step, f"{what} loss", loss.detach())
+def _update(step: int, opt, params, parts: list, loss_of, gen: torch.Generator, what: str) -> tuple:
+    """One optimizer step on this process's micro-batches (--micro_batch). Each part's loss is backpropagated
+    weighted by its share of the rows: every loss here is a mean over rows, so the summed gradient is the whole
+    batch's. Each part starts from the same generator state, so it draws what the whole batch draws and keeps its
+    own rows (part.shard, as processes do: rl.Rollouts.shard). Then the LoRA gradients are averaged over processes
+    (the same update a single process makes on the whole batch), clipped (Table 3: max grad norm 1), and stepped.
+    loss_of(part) -> (loss, info). Returns (loss, grad norm, info), loss and info as weighted means over parts."""
     opt.zero_grad(set_to_none=True)
-    loss.backward()
+    draws, total, info = gen.get_state(), 0.0, {}
+    for p in parts:
+        gen.set_state(draws)
+        loss, part_info = loss_of(p)
+        _check_finite(step, f"{what} loss", loss.detach())
+        (loss * p.share).backward()
+        total += loss.item() * p.share
+        for k, v in part_info.items():
+            info[k] = info.get(k, 0.0) + v * p.share
     if dist.is_initialized():
         for p in params:
             if p.grad is None:
@@ -838,7 +865,7 @@ def _update(step: int, opt, params, loss: torch.Tensor, what: str) -> float:
             p.grad /= _world()
     gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)
     opt.step()
-    return float(gnorm)
+    return total, float(gnorm), info
 
 
 def _mean(x: torch.Tensor) -> float:
@@ -862,33 +889,56 @@ def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool, prompts=
         x_0=x_0[rows].to(dev), noises=None if noises is None else noises[:, rows].to(dev))
 
 
+def _parts(net, b: SimpleNamespace, args: Args, executor: bool = True) -> list:
+    """This process's b.n rows of a step in micro-batches of at most --micro_batch (0: one part), each with its
+    conditions -- c_E (the Executor's prompts; not for a Demonstrator round) and c_D (the descriptions) -- its share
+    of the rows, and `shard`: where its rows lie in the whole batch of b.N (their random draws are the batch's)."""
+    m = args.micro_batch or b.n
+    parts = []
+    for i in range(0, b.n, m):
+        r = slice(i, min(i + m, b.n))
+        parts.append(SimpleNamespace(rows=r, share=(r.stop - r.start) / b.n, shard=(b.shard[0] + i, b.N),
+                                     c_E=net.condition(b.frame0[r], b.prompts[r]) if executor else None,
+                                     c_D=net.condition(b.frame0[r], b.descs[r])))
+    return parts
+
+
+def _sample_parts(net, parts: list, b: SimpleNamespace, args: Args, cond: str) -> np.ndarray:
+    """Alg. 1 line 5 on each part under its condition `cond` ("c_E" or "c_D"): part.ro (rl.Rollouts, sharded as
+    its rows) and part.vs (the velocities along the way). Returns the decoded videos of all parts, in row order."""
+    for p in parts:
+        p.ro, p.vs = _rollouts(net, getattr(p, cond), b.x_0[p.rows], args,
+                               None if b.noises is None else b.noises[:, p.rows])
+        p.ro.shard = p.shard
+    return np.concatenate([net.decode(p.ro.x1, b.frame0[p.rows]) for p in parts])
+
+
 def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0, tasks, descs, gen,
             teacher=None, prompts=None) -> dict:
     """One Executor iteration of Alg. 1 (Alg. 2 lines 18-25) on tasks_per_step (image, T, D), each repeated
-    group_size times; split across processes under torchrun. `teacher`: a trained Demonstrator (Alg. 2); None =
-    the base with adapters off. `prompts`: the Executor's text per task (a control's, Args.executor_prompt);
-    None = T, the paper's c_E. The judges judge T either way."""
+    group_size times; split across processes under torchrun, and within a process into --micro_batch parts.
+    `teacher`: a trained Demonstrator (Alg. 2); None = the base with adapters off. `prompts`: the Executor's text
+    per task (a control's, Args.executor_prompt); None = T, the paper's c_E. The judges judge T either way."""
     sde = args.executor_update != "off" and (args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     b = _group_batch(model, frame0, tasks, descs, args, gen, sde, prompts)
-    N, n, rows, groups, frame0, tasks = b.N, b.n, b.rows, b.groups, b.frame0, b.tasks
-    c_E, c_D = model.condition(frame0, b.prompts), model.condition(frame0, b.descs)
+    N, n, rows, groups, tasks = b.N, b.n, b.rows, b.groups, b.tasks
+    parts = _parts(model, b, args)
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
-        traj = (distill.rollout(teacher, b.x_0, c_D, args.sample_steps) if teacher is not None else
-                distill.rollout(model, b.x_0, c_D, args.sample_steps, demonstrator=True))
-        loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, b.shard, state_window(args),
-                                       args.distill_motion_weight)
-        gnorm = _update(step, opt, params, loss, "off-policy")
-        return {"loss": _mean_over_processes(loss.item()), "grad_norm": gnorm, "sample_s": time.time() - t0}
-    ro, vs = _rollouts(model, c_E, b.x_0, args, b.noises)
-    ro.shard = b.shard
-    videos = model.decode(ro.x1, frame0)
+        def off_policy(p):
+            traj = (distill.rollout(teacher, b.x_0[p.rows], p.c_D, args.sample_steps) if teacher is not None else
+                    distill.rollout(model, b.x_0[p.rows], p.c_D, args.sample_steps, demonstrator=True))
+            return distill.off_policy_loss(model, traj, p.c_E, p.c_D, gen, teacher, p.shard, state_window(args),
+                                           args.distill_motion_weight), {}
+        loss, gnorm, _ = _update(step, opt, params, parts, off_policy, gen, "off-policy")
+        return {"loss": _mean_over_processes(loss), "grad_norm": gnorm, "sample_s": time.time() - t0}
+    videos = _sample_parts(model, parts, b, args, "c_E")
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
     local = judge_rollouts(videos, tasks, args.task_reward)
-    local["distill"] = (distill.distill_reward(model, (ro.xs, ro.ts), c_E, c_D, student_v=vs, teacher=teacher,
-                                               motion_weight=args.distill_motion_weight)
-                        if args.lambda_distill > 0 else torch.zeros(n))
+    local["distill"] = (torch.cat([distill.distill_reward(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, student_v=p.vs,
+                                                          teacher=teacher, motion_weight=args.distill_motion_weight)
+                                   for p in parts]) if args.lambda_distill > 0 else torch.zeros(n))
     rewards = {k: _gather(v) for k, v in local.items()}
     for k in ("task", "consistency"):
         _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
@@ -898,15 +948,21 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     _check_finite(step, "advantage", A_all)
     A = A_all[rows].to(b.x_0.device)
     t2 = time.time()
-    # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, the update of Eq. 12
-    for _ in range(args.inner_epochs):
-        l_rl, info = rl.OBJECTIVES[args.trainer](model, ro, A, cfg, gen)
-        l_anchor = (distill.anchor_loss(model, (ro.xs, ro.ts), c_E, c_D, gen, teacher, b.shard,
+
+    def wmsd(p):   # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, Eq. 12
+        l_rl, info = rl.OBJECTIVES[args.trainer](model, p.ro, A[p.rows], cfg, gen)
+        l_anchor = (distill.anchor_loss(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, gen, teacher, p.shard,
                                         state_window(args), args.distill_motion_weight) if args.beta_d > 0 else None)
-        loss = rl.final_loss(l_rl, l_anchor, args.beta_d)
-        gnorm = _update(step, opt, params, loss, "Executor")
-    return {"loss": _mean_over_processes(loss.item()), "l_rl": _mean_over_processes(l_rl.item()),
-            "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor.item()),
+        info["l_rl"] = l_rl.item()
+        if l_anchor is not None:
+            info["l_anchor"] = l_anchor.item()
+        return rl.final_loss(l_rl, l_anchor, args.beta_d), info
+
+    for _ in range(args.inner_epochs):
+        loss, gnorm, info = _update(step, opt, params, parts, wmsd, gen, "Executor")
+    l_rl, l_anchor = info.pop("l_rl"), info.pop("l_anchor", None)
+    return {"loss": _mean_over_processes(loss), "l_rl": _mean_over_processes(l_rl),
+            "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor),
             "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
             "r_distill": float(rewards["distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
@@ -922,19 +978,21 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     and is updated by L_RL(phi) + beta_phi L_base, where L_base is the anchor of Eq. 11 with the *base* f_0 (phi's
     adapters off) as the reference, on phi's own states, under c_D."""
     b = _group_batch(demo, frame0, tasks, descs, args, gen, args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
-    c_D = demo.condition(b.frame0, b.descs)
-    ro, _ = _rollouts(demo, c_D, b.x_0, args, b.noises)
-    ro.shard = b.shard
-    judged = judge_rollouts(demo.decode(ro.x1, b.frame0), b.tasks, args.task_reward)
+    parts = _parts(demo, b, args, executor=False)
+    judged = judge_rollouts(_sample_parts(demo, parts, b, args, "c_D"), b.tasks, args.task_reward)
     rewards = {k: _gather(v) for k, v in judged.items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
-    l_rl, _ = rl.OBJECTIVES[args.trainer](demo, ro, A_all[b.rows].to(b.x_0.device), cfg, gen)
-    l_base = distill.anchor_loss(demo, (ro.xs, ro.ts), c_D, c_D, gen, shard=b.shard)   # phi vs f_0, under c_D
-    loss = rl.final_loss(l_rl, l_base, args.beta_phi)
-    gnorm = _update(step, opt, params, loss, "Demonstrator")
-    return {"demo_round": True, "loss": _mean_over_processes(loss.item()), "grad_norm": gnorm,
+    A = A_all[b.rows].to(b.x_0.device)
+
+    def alg2(p):
+        l_rl, _ = rl.OBJECTIVES[args.trainer](demo, p.ro, A[p.rows], cfg, gen)
+        l_base = distill.anchor_loss(demo, (p.ro.xs, p.ro.ts), p.c_D, p.c_D, gen, shard=p.shard)   # phi vs f_0, c_D
+        return rl.final_loss(l_rl, l_base, args.beta_phi), {}
+
+    loss, gnorm, _ = _update(step, opt, params, parts, alg2, gen, "Demonstrator")
+    return {"demo_round": True, "loss": _mean_over_processes(loss), "grad_norm": gnorm,
             "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
             "solved": _mean(rewards["solved"])}
 
@@ -942,7 +1000,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
 
 _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
-                "eval_cache")
+                "eval_cache", "micro_batch", "grad_checkpoint")   # these change memory or speed, not the numbers
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
@@ -984,9 +1042,13 @@ def load_base(args: Args):
     if args.model == "toy":
         return models.load_checkpoint(args.init or None)[0]
     if args.model.endswith("-tiny"):
-        return REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
-    model = REAL_MODELS[args.model].from_pretrained(args.model_path)
-    return model.to("cuda") if torch.cuda.is_available() else model
+        model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    else:
+        model = REAL_MODELS[args.model].from_pretrained(args.model_path)
+        model = model.to("cuda") if torch.cuda.is_available() else model
+    if args.grad_checkpoint:       # recomputed in the backward pass: only with gradients on, so sampling is unchanged
+        model.transformer.enable_gradient_checkpointing()
+    return model
 
 
 def load_pairs(args: Args, model) -> list:

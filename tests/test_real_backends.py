@@ -135,6 +135,34 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
         models.load_lora(m, str(tmp_path / "bad.pt"))
 
 
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
+    """train.py --grad_checkpoint: the transformer's blocks run again in the backward pass instead of keeping their
+    activations, and the LoRA gradients of Eq. 12's anchor are the same."""
+    m, f0, c_E, c_D = _tiny(cls)
+    models.add_lora(m, 4, 8.0)
+    for n, p in m.named_parameters():      # B != 0: the Executor differs from the Demonstrator, the anchor has a gradient
+        if "lora_B" in n:
+            p.data.normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
+    calls, block = [], m.transformer.transformer_blocks[0]
+    forward = block.forward      # counted by wrapping forward: the recomputation does not run forward hooks
+    block.forward = lambda *a, **k: calls.append(1) or forward(*a, **k)
+    x0 = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+
+    def grads():
+        m.zero_grad()
+        calls.clear()
+        distill.anchor_loss(m, distill.rollout(m, x0, c_E, 2), c_E, c_D, torch.Generator().manual_seed(0)).backward()
+        return [p.grad.clone() for p in models.lora_parameters(m)], len(calls)
+
+    plain, n_plain = grads()
+    m.transformer.enable_gradient_checkpointing()
+    ckpt, n_ckpt = grads()
+    assert n_ckpt == n_plain + 1                           # the anchor's one forward with gradient, run again
+    assert any(g.abs().max() > 0 for g in plain)
+    assert all(torch.allclose(a, b, atol=1e-6, rtol=1e-5) for a, b in zip(plain, ckpt))
+
+
 def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     with pytest.raises(ImportError, match="no_such_package"):
         models._require("no_such_package")
@@ -149,13 +177,14 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     assert r.returncode == 2 and "HunyuanVideo-1.5 weights not found" in r.stderr and "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("model,judge", [("ltx2-tiny", "qwen-vl-tiny"), ("hunyuan15-tiny", "qwen-vl-tiny")])
-def test_one_wmsd_run_on_a_tiny_real_model(model, judge, tmp_path):
+@pytest.mark.parametrize("model,judge,memory", [("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
+                                               ("hunyuan15-tiny", "qwen-vl-tiny", [])])
+def test_one_wmsd_run_on_a_tiny_real_model(model, judge, memory, tmp_path):
     """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
     judgments (random weights answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages,
-    AWM + anchor, evaluation, the LoRA file."""
+    AWM + anchor, evaluation, the LoRA file; LTX-2 one rollout per pass with gradient checkpointing, as at real size."""
     data = _toy_dataset(tmp_path / "data", 2)
-    r = run("train.py", "--model", model, "--judge", judge, "--dataset", data, "--steps", "1",
+    r = run("train.py", "--model", model, "--judge", judge, "--dataset", data, "--steps", "1", *memory,
             "--group_size", "2", "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--sample_steps", "2",
             "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr[-2000:]

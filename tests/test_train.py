@@ -79,6 +79,50 @@ def _args(tiny_ckpt, tmp_path, **kw):
     return a
 
 
+def _one_step(tiny_ckpt, tmp_path, **kw):
+    """One rl_step (or, with alternate, one Demonstrator round) from a fresh LoRA on the tiny base, 2 tasks x a group
+    of 4; returns (its record, the LoRA gradients of its update, the generator's state after it, the batch sizes
+    the network saw)."""
+    args = _args(tiny_ckpt, tmp_path, group_size=4, **kw)
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    torch.manual_seed(0)
+    train.models.add_lora(model, args.lora_rank, args.lora_alpha)
+    for name, p in model.named_parameters():    # B != 0: a Demonstrator round's anchor to the base has a gradient
+        if "lora_B" in name:
+            p.data.normal_(0, 0.01)
+    params = train.models.lora_parameters(model)
+    opt = torch.optim.Adam(params, lr=args.lr)
+    sizes, forward = [], model.forward
+    model.forward = lambda x, t, c: sizes.append(x.shape[0]) or forward(x, t, c)
+    frame0, tasks, descs = train._batch(train.world.bench_pairs(0.3), [0, 1])
+    gen = torch.Generator().manual_seed(0)
+    step = train.demonstrator_round if args.alternate else train.rl_step
+    rec = step(1, model, opt, params, args, train.rl_config(args), frame0, tasks, descs, gen)
+    return rec, [p.grad.clone() for p in params], gen.get_state(), sizes
+
+
+@pytest.mark.parametrize("flags", [{}, {"trainer": "flow-grpo", "inner_epochs": 2}, {"trainer": "nft"},
+                                   {"executor_update": "off"}, {"alternate": 1}],
+                         ids=["awm", "flow-grpo", "nft", "off-policy", "demonstrator-round"])
+def test_micro_batches_make_the_one_pass_update(tiny_ckpt, tmp_path, flags):
+    # lambda_distill 0 for the same reason as in the two-process test; r_distill itself is compared below
+    one, grad1, gen1, s1 = _one_step(tiny_ckpt, tmp_path, lambda_distill=0, **flags)
+    mb, grad3, gen3, s3 = _one_step(tiny_ckpt, tmp_path, lambda_distill=0, micro_batch=3, **flags)
+    assert max(s3) <= 3 * 2 < max(s1)                       # passes of at most 3 rollouts (x 2 re-noising times)
+    for k in ("A", "r_task", "r_cons", "solved"):
+        if k in one:
+            assert torch.allclose(torch.tensor(one[k]), torch.tensor(mb[k]), atol=1e-5), k
+    assert abs(one["loss"] - mb["loss"]) < 1e-6
+    assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-8) for a, b in zip(grad1, grad3))  # the same gradient
+    assert one["grad_norm"] > 0
+    assert torch.equal(gen1, gen3)                            # the same draws: the next step starts alike
+
+
+def test_micro_batches_give_the_one_pass_r_distill(tiny_ckpt, tmp_path):
+    one, mb = (_one_step(tiny_ckpt, tmp_path, micro_batch=m)[0]["r_distill"] for m in (0, 3))
+    assert one < 0 and abs(one - mb) <= 1e-4 * abs(one)
+
+
 def test_a_failing_judge_is_counted_and_skipped(tiny_ckpt, tmp_path, monkeypatch):
     real, calls = train.reward.judge_task, {"n": 0}
 
@@ -188,6 +232,9 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--task_reward", "fig10"], "--task_reward: unknown"),
                       (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
                       (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs is for the toy U-Net"),
+                      (["--micro_batch", "-1"], "--micro_batch must be >= 0"),
+                      (["--stage", "distill", "--micro_batch", "4"], "--micro_batch splits the rl stage's"),
+                      (["--grad_checkpoint"], "--grad_checkpoint is for a real model's transformer"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
