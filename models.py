@@ -689,6 +689,21 @@ def _with_first_frame(video: torch.Tensor, frame0) -> np.ndarray:
 LTX2_VIDEO_ATTENTION = r".*transformer_blocks\.\d+\.attn[12]\.(to_q|to_k|to_v|to_out\.0)"  # Table 3: video attention only
 
 
+def _peft_lora(transformer, rank: int, alpha: float, target: str) -> list[str]:
+    """A real backend's LoRA through peft (diffusers' add_adapter) on the modules matching `target`, B = 0 at init;
+    everything else frozen. The adapter weights are kept in float32 even when the base is bfloat16 (as diffusers'
+    training scripts do): a bf16 weight near 0.016 moves in steps of 1.2e-4, about one Adam step at Table 3's
+    learning rate 2e-4, so updates would be rounded away. peft casts activations to the adapter's dtype and back.
+    Returns the adapter parameters' names."""
+    from peft import LoraConfig
+    transformer.requires_grad_(False)
+    transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha, target_modules=target, init_lora_weights=True))
+    for p in transformer.parameters():
+        if p.requires_grad:
+            p.data = p.data.float()
+    return [n for n, _ in transformer.named_parameters() if "lora_" in n]
+
+
 class LTX2Video(nn.Module):
     """LTX-2 image-to-video (diffusers' LTX2VideoTransformer3DModel + its video VAE + Gemma3 text encoder and
     LTX-2's text connectors) as v_theta(x_t, t | c) in this repository's convention.
@@ -777,11 +792,7 @@ class LTX2Video(nn.Module):
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
     def add_lora(self, rank: int, alpha: float, target: str = LTX2_VIDEO_ATTENTION) -> list[str]:
         """Table 3: LoRA on the video attention projections only; B = 0 at init (the Executor starts as the base)."""
-        from peft import LoraConfig
-        self.transformer.requires_grad_(False)
-        self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha, target_modules=target,
-                                                init_lora_weights=True))
-        return [n for n, _ in self.transformer.named_parameters() if "lora_" in n]
+        return _peft_lora(self.transformer, rank, alpha, target)
 
     # -- the interface every backend provides -------------------------------------------------------------------
     def latent_shape(self) -> tuple:
@@ -951,11 +962,7 @@ class HunyuanVideo15(nn.Module):
     def add_lora(self, rank: int, alpha: float, target: str = HY15_VIDEO_ATTENTION) -> list[str]:
         """Table 3: LoRA rank 64 / alpha 128; here on the video stream's attention projections (the joint blocks'
         to_q/k/v/out; the text stream's add_*_proj stay frozen), B = 0 at init."""
-        from peft import LoraConfig
-        self.transformer.requires_grad_(False)
-        self.transformer.add_adapter(LoraConfig(r=rank, lora_alpha=alpha, target_modules=target,
-                                                init_lora_weights=True))
-        return [n for n, _ in self.transformer.named_parameters() if "lora_" in n]
+        return _peft_lora(self.transformer, rank, alpha, target)
 
     # -- the interface every backend provides -------------------------------------------------------------------
     def latent_shape(self) -> tuple:

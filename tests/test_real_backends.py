@@ -136,6 +136,24 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_lora_weights_train_in_float32_on_a_bfloat16_base(cls):
+    """from_pretrained loads the real models in bfloat16, where a weight near 0.016 moves in steps of 1.2e-4 and an
+    Adam step at Table 3's lr 2e-4 would be rounded away; the adapters are float32 and take the step whole."""
+    m, f0, c_E, _ = _tiny(cls)
+    m.transformer.to(torch.bfloat16)
+    models.add_lora(m, 4, 8.0)
+    lora = {n: p for n, p in m.transformer.named_parameters() if "lora_" in n}
+    assert {p.dtype for p in lora.values()} == {torch.float32}
+    assert {p.dtype for n, p in m.transformer.named_parameters() if n not in lora} == {torch.bfloat16}
+    x = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    m(x, torch.tensor([0.3, 0.6]), c_E).pow(2).mean().backward()
+    before = {n: p.detach().clone() for n, p in lora.items()}
+    torch.optim.Adam(list(lora.values()), lr=2e-4).step()
+    step = max((p.detach() - before[n]).abs().max().item() for n, p in lora.items())
+    assert step == pytest.approx(2e-4, rel=0.01)                   # Adam's first step is lr, kept exactly
+
+
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
 def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
     """train.py --grad_checkpoint: the transformer's blocks run again in the backward pass instead of keeping their
     activations, and the LoRA gradients of Eq. 12's anchor are the same."""
