@@ -113,6 +113,8 @@ def family_scores(pairs: list, judgments: list[dict], key: str = "task", group=l
 def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
     """Task score on the pairs whose toy-VLM description D is right vs wrong (whatever the condition): where the
     Demonstrator must fail, and where an Executor that beats it (Tab. 1) would have to gain."""
+    if not all(hasattr(p, "error") for p in pairs):    # a real-image bench: whether D is wrong is not known
+        return {}
     return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
 
 
@@ -129,17 +131,18 @@ def consistency_faults(judgments: list[dict]) -> dict:
 
 
 def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
-    """Agent score per agent type (paper Fig. 7 right): a sprite vs the first-person camera."""
-    return family_scores(pairs, judgments, "agent",
-                         lambda p: "first-person view" if p.task.agent == world.FIRST_PERSON else "sprite")
+    """Agent score per agent type (paper Fig. 7 right): the first-person camera vs a sprite (on a real-image bench,
+    any other agent)."""
+    return family_scores(pairs, judgments, "agent", lambda p: "first-person view" if p.task.agent == world.FIRST_PERSON
+                         else "sprite" if hasattr(p, "scene") else "other agent")
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
-             steps: int = 10, judge=None, batch: int = 200) -> tuple[dict, np.ndarray, list]:
+             steps: int = 10, judge=None, batch: int = 200, pairs: list | None = None) -> tuple[dict, np.ndarray, list]:
     """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
-    Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch). Returns (result dict, videos
-    uint8 (n, F, H, W, 3), pairs)."""
-    pairs = world.bench_pairs(error_rate)[:n]
+    Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch). The bench is the toy one, or
+    `pairs` (a real-image bench, train.load_bench). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+    pairs = (world.bench_pairs(error_rate) if pairs is None else pairs)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
     videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed, batch=batch)
@@ -151,7 +154,7 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
         judgments = judge.bench(videos, [p.task.text for p in pairs])
     res = score_table(judgments)
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
-               seconds_per_video=seconds / max(n, 1), judge_seconds=time.time() - t1,
+               seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
                by_vlm_error=vlm_error_scores(pairs, judgments), faults=consistency_faults(judgments))
     return res, videos, pairs

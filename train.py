@@ -182,6 +182,9 @@ class Args:
     dataset: str = ""
     """a WorldTasks JSONL file (image, task, description per line; world.make_worldtasks writes one) to train on
     instead of the toy VLM's pairs"""
+    eval_dataset: str = ""
+    """a WorldTasks JSONL file whose first --eval_n rows are the bench (the paper's WorldTasks-Bench: 200 held-out
+    image-task pairs), judged with the bench prompts; empty: the toy bench. No row may also be in --dataset"""
     judge: str = "toy"
     """the judge of rewards and bench: toy (reward.py's rule-based judges) | qwen-vl (a Qwen3-VL / Qwen3.5 from
     --judge_path, the paper's prompts, log p(yes) - log p(no)) | qwen-vl-tiny (random-weight Qwen3-VL, for checks)"""
@@ -355,8 +358,10 @@ def parse_args(argv=None) -> Args:
         p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
     if args.grad_checkpoint and args.model == "toy":
         p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
-    if args.eval_n > 200:
-        p.error("--eval_n must be at most 200 (the bench size)")
+    if args.eval_n > 200 and not args.eval_dataset:
+        p.error("--eval_n must be at most 200 (the toy bench's size)")
+    if args.eval_dataset and args.stage != "rl":
+        p.error("--eval_dataset is the rl stage's bench: it needs --stage rl")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
         p.error("--p_vague, --p_empty, --p_goal must be >= 0 and sum to at most 1")
     if not 0 <= args.ema < 1:
@@ -515,7 +520,7 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE,
-                                        batch=args.micro_batch or 200)
+                                        batch=args.micro_batch or 200, pairs=BENCH)
     return res
 
 
@@ -529,7 +534,8 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     key = {"base": bench.file_digest(args.init or models.SHIPPED_BASE), "demonstrator": demonstrator,
            **({} if demonstrator or args.executor_prompt == "task" else {"executor_prompt": args.executor_prompt}),
            "eval_n": args.eval_n, "error_rate": args.error_rate, "sample_steps": args.sample_steps,
-           "judge": args.judge, "judge_path": args.judge_path}
+           "judge": args.judge, "judge_path": args.judge_path,
+           **({"eval_dataset": bench.file_digest(args.eval_dataset)} if args.eval_dataset else {})}
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
     path = os.path.join(args.eval_cache, name)
     if os.path.isfile(path):        # the file name is the key's hash
@@ -666,8 +672,9 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (or its
     --executor_prompt; same noise)."""
     from PIL import Image
-    pairs = world.bench_pairs(args.error_rate)[:n]
+    pairs = (world.bench_pairs(args.error_rate) if BENCH is None else BENCH)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
+    scale = max(1, scale // max(1, frame0.shape[1] // world.H))     # a real model's frames are large already
     batch = args.micro_batch or n
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
@@ -695,6 +702,8 @@ def rl_config(args: Args) -> rl.RLConfig:
 
 JUDGE = None
 """The VLM judge of this run (reward.VLMJudge), set by rl_stage from --judge; None = reward.py's toy judges."""
+BENCH = None
+"""The bench of this run, set by rl_stage from --eval_dataset (load_bench); None = the toy bench."""
 
 
 def make_judge(args: Args):
@@ -1052,26 +1061,47 @@ def load_base(args: Args):
 
 
 def load_pairs(args: Args, model) -> list:
-    """Alg. 1 lines 3-4's (image, T, D): the toy VLM's pairs, or a WorldTasks JSONL file (--dataset) with its
-    images resized to the model's resolution."""
+    """Alg. 1 lines 3-4's (image, T, D): the toy VLM's pairs, or a WorldTasks JSONL file (--dataset)."""
     if not args.dataset:
         return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+    return dataset_pairs(args.dataset, model, args.tasks_per_step, "--tasks_per_step")
+
+
+def dataset_pairs(path: str, model, need: int, flag: str) -> list:
+    """The rows of a WorldTasks JSONL file as (image, T, D) pairs, the images resized to the model's resolution;
+    a clear error naming the line of a bad row, or if there are fewer than `need` rows (`flag` asks for them)."""
     from PIL import Image
     size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
-    rows = world.load_dataset(args.dataset)
+    rows = world.load_dataset(path)
     if model.backend == "toy":   # the toy model knows the toy world's words and agents only: say which line does not
         for r in rows:
             try:
                 world.parse_task(r["task"])
                 model.tokenizer([r["task"], r["description"]])
             except ValueError as e:
-                raise ValueError(f"{args.dataset} line {r['line']}: {e}") from None
-    if len(rows) < args.tasks_per_step:
-        raise ValueError(f"dataset {args.dataset!r} has {len(rows)} rows, fewer than --tasks_per_step "
-                         f"{args.tasks_per_step}")
+                raise ValueError(f"{path} line {r['line']}: {e}") from None
+    if len(rows) < need:
+        raise ValueError(f"dataset {path!r} has {len(rows)} rows, fewer than {flag} {need}")
     return [SimpleNamespace(frame0=np.asarray(Image.open(r["image"]).convert("RGB").resize(size, Image.BILINEAR)),
-                            task=SimpleNamespace(text=r["task"]), d_vlm=r["description"])
+                            task=SimpleNamespace(text=r["task"], family=r.get("family") or world.task_family(r["task"]),
+                                                 agent=world.split_task(r["task"])[0]),
+                            d_vlm=r["description"], image=r["image"])
             for r in rows]
+
+
+def load_bench(args: Args, model) -> list | None:
+    """--eval_dataset's first --eval_n rows, the bench every evaluation uses; None: the toy bench. A row that is
+    also a training row (same image and task) is an error: the bench is held out."""
+    if not args.eval_dataset:
+        return None
+    pairs = dataset_pairs(args.eval_dataset, model, args.eval_n, "--eval_n")[:args.eval_n]
+    if args.dataset:
+        train_rows = {(r["image"], r["task"]) for r in world.load_dataset(args.dataset)}
+        shared = [p for p in pairs if (p.image, p.task.text) in train_rows]
+        if shared:
+            raise ValueError(f"{len(shared)} of the {len(pairs)} bench rows of {args.eval_dataset!r} are also in "
+                             f"--dataset {args.dataset!r} (first: {shared[0].task.text!r}); the bench must be held out")
+    return pairs
 
 
 def rl_stage(args: Args) -> dict:
@@ -1089,10 +1119,11 @@ def rl_stage(args: Args) -> dict:
     state_path = os.path.join(args.run_dir, "state.pt")
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
-    global JUDGE
+    global JUDGE, BENCH
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
     JUDGE = make_judge(args)
     pairs = load_pairs(args, model)
+    BENCH = load_bench(args, model)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
     keys = ("task", "agent", "consistency", "avg", "seconds_per_video")

@@ -195,14 +195,16 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     assert r.returncode == 2 and "HunyuanVideo-1.5 weights not found" in r.stderr and "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("model,judge,memory", [("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
-                                               ("hunyuan15-tiny", "qwen-vl-tiny", [])])
-def test_one_wmsd_run_on_a_tiny_real_model(model, judge, memory, tmp_path):
+@pytest.mark.parametrize("model,judge,extra", [("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
+                                              ("hunyuan15-tiny", "qwen-vl-tiny", ["--eval_dataset", "held"])])
+def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
     judgments (random weights answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages,
-    AWM + anchor, evaluation, the LoRA file; LTX-2 one rollout per pass with gradient checkpointing, as at real size."""
+    AWM + anchor, evaluation, the LoRA file; LTX-2 one rollout per pass with gradient checkpointing, as at real size,
+    and HunyuanVideo-1.5 evaluated on a held-out WorldTasks file."""
     data = _toy_dataset(tmp_path / "data", 2)
-    r = run("train.py", "--model", model, "--judge", judge, "--dataset", data, "--steps", "1", *memory,
+    extra = [_toy_dataset(tmp_path / "held", 2, seed=6) if a == "held" else a for a in extra]
+    r = run("train.py", "--model", model, "--judge", judge, "--dataset", data, "--steps", "1", *extra,
             "--group_size", "2", "--tasks_per_step", "1", "--eval_every", "1", "--eval_n", "2", "--sample_steps", "2",
             "--run_dir", str(tmp_path))
     assert r.returncode == 0, r.stderr[-2000:]
@@ -243,12 +245,12 @@ def test_tiny_vlm_judge_batches_like_single_items():
     assert r.returncode == 2 and "--judge qwen-vl needs --judge_path" in r.stderr
 
 
-def _toy_dataset(d, n):
+def _toy_dataset(d, n, seed=5):
     """A WorldTasks-format JSONL over toy first frames saved as PNGs (what world.make_worldtasks writes)."""
     from PIL import Image
     d.mkdir(parents=True, exist_ok=True)
     rows = []
-    for i, p in enumerate(world.make_pairs(n, seed=5, error_rate=0.0)):
+    for i, p in enumerate(world.make_pairs(n, seed=seed, error_rate=0.0)):
         Image.fromarray(p.frame0).resize((32, 32), Image.NEAREST).save(d / f"{i}.png")
         rows.append({"image": f"{i}.png", "task": p.task.text, "description": p.d_oracle,
                      "agent": world.split_task(p.task.text)[0], "family": p.task.family})

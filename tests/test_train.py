@@ -315,3 +315,41 @@ def test_the_final_table_names_the_fig5_setting_the_flags_select():
     assert name("--beta_d", "0", "--lambda_distill", "0") == "RL from the judges alone"
     assert name("--alternate", "2") == "WMSD, alternating (Alg. 2)"
     assert name("--alternate", "2", "--executor_update", "off") == "off-policy distillation + RL on the teacher"
+
+
+def _dataset(d, seed: int, n: int) -> str:
+    """A WorldTasks JSONL file over toy first frames (what world.make_worldtasks writes)."""
+    from PIL import Image
+    d.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, p in enumerate(train.world.make_pairs(n, seed=seed, error_rate=0.0)):
+        Image.fromarray(p.frame0).save(d / f"{seed}_{i}.png")
+        rows.append({"image": f"{seed}_{i}.png", "task": p.task.text, "description": p.d_oracle})
+    (d / f"{seed}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return str(d / f"{seed}.jsonl")
+
+
+def test_eval_dataset_is_the_bench_and_must_be_held_out(tiny_ckpt, tmp_path, monkeypatch, capsys):
+    """--eval_dataset: every evaluation (the base, the Demonstrator, the Executor, the GIF) samples its first --eval_n
+    rows, not the toy bench; a bench row that is also a training row, too few rows, or another stage: exit 2."""
+    data, held = _dataset(tmp_path, 11, 4), _dataset(tmp_path, 12, 3)
+    rows = [json.loads(line) for line in open(held)][:2]
+    prompts, generate = [], train.models.generate
+    monkeypatch.setattr(train.models, "generate", lambda m, f, texts, *a, **k: prompts.append(list(texts)) or
+                        generate(m, f, texts, *a, **k))
+    monkeypatch.setattr(train, "BENCH", None)
+    out, threads = tmp_path / "run", torch.get_num_threads()
+    try:
+        train.main([*TINY, "--init", tiny_ckpt, "--dataset", data, "--eval_dataset", held, "--eval_n", "2",
+                    "--steps", "1", "--run_dir", str(out)])
+    finally:
+        torch.set_num_threads(threads)
+    tasks, descs = [r["task"] for r in rows], [r["description"] for r in rows]
+    assert prompts[0] == tasks and prompts[1] == descs            # the base given T, the Demonstrator given D
+    assert prompts[-3] == tasks and prompts[-2] == descs[:2] and prompts[-1] == tasks    # final bench; the GIF
+    assert len(prompts) == 6 and (out / "rollouts_rl.gif").exists()
+    for argv, msg in ((["--dataset", data, "--eval_dataset", data], "the bench must be held out"),
+                      (["--eval_dataset", held, "--eval_n", 4], "fewer than --eval_n 4"),
+                      (["--stage", "distill", "--eval_dataset", held], "--eval_dataset is the rl stage's bench")):
+        err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, *argv, "--run_dir", tmp_path / "never"], capsys)
+        assert msg in err and not (tmp_path / "never").exists(), (argv, err)
