@@ -390,10 +390,11 @@ class VLMJudge:
             self.tokenizer.padding_side = "left"
             enc = self.tokenizer(texts, return_tensors="pt", padding=True)
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
+            dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
             with torch.no_grad():
-                o = self.model(input_ids=enc.input_ids, attention_mask=enc.attention_mask,
-                               pixel_values=img["pixel_values"].to(self.model.dtype),
-                               image_grid_thw=img["image_grid_thw"], mm_token_type_ids=mm)
+                o = self.model(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
+                               pixel_values=img["pixel_values"].to(dev, self.model.dtype),
+                               image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev))
             out.append(o.logits[:, -1].float().cpu().numpy())
         return np.concatenate(out)
 
@@ -412,10 +413,11 @@ class VLMJudge:
             n = int(img["image_grid_thw"].prod(-1)[0]) // self.image_processor.merge_size ** 2
             enc = self.tokenizer([self._chat([n], prompt)], return_tensors="pt")
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()
+            dev = self.model.device
             with torch.no_grad():
-                ids = self.model.generate(input_ids=enc.input_ids, attention_mask=enc.attention_mask,
-                                          pixel_values=img["pixel_values"].to(self.model.dtype),
-                                          image_grid_thw=img["image_grid_thw"], mm_token_type_ids=mm,
+                ids = self.model.generate(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
+                                          pixel_values=img["pixel_values"].to(dev, self.model.dtype),
+                                          image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),
                                           max_new_tokens=max_new_tokens, do_sample=False)
             out.append(self.tokenizer.decode(ids[0, enc.input_ids.shape[1]:], skip_special_tokens=True))
         return out

@@ -711,7 +711,10 @@ def make_judge(args: Args):
         return None
     if args.judge == "qwen-vl-tiny":
         return reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
-    return reward.VLMJudge.from_pretrained(args.judge_path)
+    judge = reward.VLMJudge.from_pretrained(args.judge_path)
+    if torch.cuda.is_available():     # beside the video model, on this process's GPU (torchrun: its LOCAL_RANK)
+        judge.model.to("cuda")
+    return judge
 
 
 TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_task | reward.judge_task_reward
