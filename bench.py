@@ -27,6 +27,11 @@ which a bystander moves the goal to the agent.
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
 
+A real model on a real-image bench (a WorldTasks JSONL file; the judge a Qwen-VL with the prompts of Figs. 15-17):
+  python bench.py --model ltx2 --model_path LTX2 --judge qwen-vl --judge_path QWEN --dataset bench.jsonl --batch 4
+  ... --condition vlm                            # the "+VLM" row: the Demonstrator, the base given the file's D
+  ... --lora runs/executor_awm.pt                # the Executor: the base + the LoRA train.py wrote, given T
+
 The reproduction report (every experiment over seeds, into tables and figures) is report.py; it evaluates with
 this file's `evaluate` and draws with its plotting helpers.
 """
@@ -52,6 +57,7 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
+REAL_MODELS = ("ltx2", "hunyuan15")   # --model: train.REAL_MODELS, the paper's two bases
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction")
 
 
@@ -371,7 +377,8 @@ def format_table(res: dict, title: str = "") -> str:
             rows.append(f"{label}: {res[name]:.3f} ({res['successes'][name]}/{res['valid'][name]})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
-    rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+    if res["by_vlm_error"]:   # not known on a real-image bench
+        rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
     if res.get("faults"):
         rows.append("consistency failed by (videos): " + ", ".join(f"{k} {v}" for k, v in res["faults"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
@@ -385,9 +392,12 @@ def strip(videos: np.ndarray, rows: int = 8) -> np.ndarray:
 
 
 def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> None:
-    """A PNG of strip(videos), each pixel scaled up `scale` times."""
+    """A PNG of strip(videos), each pixel scaled up `scale` times. A real model's videos (larger than the toy's
+    16 px, longer than 12 frames) are shown at their own size, 12 frames evenly spaced."""
     from PIL import Image
-    img = strip(videos, rows)
+    F, H = videos.shape[1], videos.shape[2]
+    scale = max(1, scale * world.H // H)
+    img = strip(videos[:, np.linspace(0, F - 1, min(F, 12)).round().astype(int)], rows)
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
@@ -494,6 +504,18 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
+    p.add_argument("--model", default="toy", choices=("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS)),
+                   help="toy (--checkpoint) | ltx2 | hunyuan15 (a local diffusers directory, --model_path) | "
+                        "ltx2-tiny | hunyuan15-tiny (random weights, for checks)")
+    p.add_argument("--model_path", default="", help="--model ltx2 / hunyuan15: the local diffusers directory")
+    p.add_argument("--lora", default=None, help="a real model's Executor: the LoRA file train.py wrote "
+                   "(<run_dir>/executor_awm.pt); without it the base itself (given D: the Demonstrator)")
+    p.add_argument("--judge", default="toy", choices=("toy", "qwen-vl", "qwen-vl-tiny"),
+                   help="toy (reward.py's judges) | qwen-vl (--judge_path; the bench prompts of Figs. 15-17)")
+    p.add_argument("--judge_path", default="", help="--judge qwen-vl: the local transformers directory")
+    p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
+                   "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the toy bench")
+    p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=200, help="bench pairs to evaluate (1..200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
@@ -529,8 +551,24 @@ def main(argv=None):
                   "are seeds of one setting)", file=sys.stderr)
             sys.exit(2)
         return
-    if not 1 <= a.n <= 200:
-        p.error(f"--n must lie in 1..200, got {a.n}")
+    if not 1 <= a.n <= (10 ** 9 if a.dataset else 200):
+        p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}" if a.n > 0 else f"--n must be >= 1, got {a.n}")
+    if a.batch < 1:
+        p.error(f"--batch must be >= 1, got {a.batch}")
+    real = a.model != "toy" or a.judge != "toy" or a.dataset
+    if a.model in REAL_MODELS and not a.model_path:
+        p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
+    if a.judge == "qwen-vl" and not a.judge_path:
+        p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if a.lora and a.model == "toy":
+        p.error("--lora loads a real model's Executor; a toy Executor checkpoint has its LoRA merged: --checkpoint")
+    if a.model != "toy" and a.checkpoint:
+        p.error("--checkpoint is a toy model file; a real model is --model_path (+ --lora for its Executor)")
+    if a.dataset and a.condition not in ("task", "vlm", "empty"):
+        p.error(f"--condition {a.condition} needs the toy bench's scenes; a --dataset bench has task, vlm, empty")
+    if real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
+        p.error("--compare, --handoff, --rank_rdistill, --pointing and --relate_probe are toy diagnostics: not with "
+                "--model, --judge or --dataset")
     if not 0 <= a.error_rate <= 1:
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
@@ -548,12 +586,37 @@ def main(argv=None):
         if len(conds) != 2 or bad:
             p.error(f"--handoff wants A,B with A and B among {', '.join(CONDITIONS)}; got {a.handoff!r}")
     torch.set_num_threads(a.threads)
+    judge = pairs = None
     try:
-        model, _ = models.load_checkpoint(a.checkpoint)
-    except (FileNotFoundError, ValueError) as e:
+        if real:         # the loaders train.py uses (train imports this module, so not at the top)
+            import train
+            run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
+                             init=a.checkpoint or "")
+            model, judge = train.load_base(run), train.make_judge(run)
+            if a.lora:
+                run = models.load_lora(model, a.lora, add=True).get("args", {})
+                print(f"Executor: {a.lora}, {sum('lora_' in k for k in model.state_dict())} LoRA weights loaded "
+                      f"(rank {run.get('lora_rank', '?')}, {run.get('steps', '?')} steps of --model "
+                      f"{run.get('model', '?')})")
+            if a.dataset:
+                pairs = train.dataset_pairs(a.dataset, model, a.n, "--n")
+        else:
+            model, _ = models.load_checkpoint(a.checkpoint)
+    except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     model.eval()
+    if real:
+        res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs)
+        name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
+        res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
+        print(format_table(res, f"model={name} judge={a.judge} bench={a.dataset or 'toy'} "))
+        if a.png:
+            save_strip(videos, a.png)
+            print(f"wrote {a.png}")
+        if a.json:
+            print(json.dumps(res))
+        return
     probe = contextlib.nullcontext()
     if a.relate_probe:
         try:

@@ -625,10 +625,14 @@ def save_lora(model: nn.Module, path: str, meta: dict | None = None) -> None:
                  "meta": meta or {}}, path)
 
 
-def load_lora(model: nn.Module, path: str) -> dict:
-    """Load save_lora's weights into a model that already has the same adapters; a clear error otherwise."""
+def load_lora(model: nn.Module, path: str, add: bool = False) -> dict:
+    """Load save_lora's weights into a model that already has the same adapters -- or, with add=True, first give it
+    adapters of the rank and alpha the file's run used (train.py's meta) -- a clear error otherwise."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+        if add:
+            run = state.get("meta", {}).get("args", {})
+            add_lora(model, run.get("lora_rank", 8), run.get("lora_alpha", 16.0))
         missing = set(state["lora"]) - set(model.state_dict())
         if missing:
             raise KeyError(f"{len(missing)} LoRA weights have no place in this model, e.g. {sorted(missing)[0]}")

@@ -212,6 +212,26 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     assert set(torch.load(tmp_path / "executor_awm.pt", weights_only=True)["lora"]) and (tmp_path / "state.pt").exists()
     step = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line][0]
     assert step["invalid"] + sum(1 for a in step["A"] if a != 0) >= 1 and step["r_distill"] < 0
+    if model == "ltx2-tiny":   # the saved Executor, benched afterwards by bench.py on a held-out WorldTasks file
+        lora, held = str(tmp_path / "executor_awm.pt"), _toy_dataset(tmp_path / "bench", 2, seed=7)
+        m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
+        models.load_lora(m, lora, add=True)                 # adapters of the run's rank, then its weights
+        saved = torch.load(lora, weights_only=True)["lora"]
+        assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
+        r = run("bench.py", "--model", model, "--lora", lora, "--judge", judge, "--dataset", held, "--n", "2",
+                "--steps", "2", "--batch", "1", "--png", str(tmp_path / "b.png"))
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert f"model={model} + {lora} judge={judge} bench={held}" in r.stdout and "| task " in r.stdout
+        assert f"Executor: {lora}, {len(saved)} LoRA weights loaded (rank 8, 1 steps of --model {model})" in r.stdout
+        assert (tmp_path / "b.png").exists()
+        import bench
+        import train
+        assert set(bench.REAL_MODELS) == set(train.REAL_MODELS)   # bench.py offers what train.py loads
+        (tmp_path / "bad.pt").write_bytes(b"garbage")
+        for argv, msg in ((["--lora", str(tmp_path / "bad.pt")], "corrupt"), (["--lora", lora, "--model", "toy"],
+                          "--lora loads a real model's Executor"), (["--condition", "oracle"], "a --dataset bench has")):
+            r = run("bench.py", "--model", model, "--dataset", held, "--n", "2", *argv)
+            assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr[-500:])
 
 
 def test_vlm_score_is_log_p_yes_minus_log_p_no():
