@@ -607,15 +607,7 @@ def main(argv=None):
         sys.exit(2)
     model.eval()
     if real:
-        res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs)
-        name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
-        res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
-        print(format_table(res, f"model={name} judge={a.judge} bench={a.dataset or 'toy'} "))
-        if a.png:
-            save_strip(videos, a.png)
-            print(f"wrote {a.png}")
-        if a.json:
-            print(json.dumps(res))
+        _run_one(a, model, judge, pairs)
         return
     probe = contextlib.nullcontext()
     if a.relate_probe:
@@ -628,8 +620,9 @@ def main(argv=None):
         _run_one(a, model)
 
 
-def _run_one(a, model) -> None:
-    """main's single-checkpoint diagnostics and evaluation, once the model is loaded (and probed)."""
+def _run_one(a, model, judge=None, pairs=None) -> None:
+    """main's single-checkpoint diagnostics and evaluation, once the model is loaded (and probed); `judge` a
+    reward.VLMJudge and `pairs` a real-image bench (--judge, --dataset), else the toy ones."""
     if a.handoff is not None:
         conds = a.handoff.split(",")
         res = handoff(model, *conds, n=a.n, seed=a.seed, error_rate=a.error_rate, steps=a.steps)
@@ -674,10 +667,15 @@ def _run_one(a, model) -> None:
         if a.json:
             print(json.dumps(res))
         return
-    res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps)
-    res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
-    probed = f"relate_probe={a.relate_probe} " if a.relate_probe else ""
-    print(format_table(res, f"checkpoint={res['checkpoint']} {probed}"))
+    res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs)
+    if a.model != "toy" or a.judge != "toy" or a.dataset:
+        name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
+        res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
+        title = f"model={name} judge={a.judge} bench={a.dataset or 'toy'} "
+    else:
+        res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
+        title = f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
+    print(format_table(res, title))
     if a.png:
         save_strip(videos, a.png)
         print(f"wrote {a.png}")
