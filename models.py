@@ -34,6 +34,7 @@ import copy
 import math
 import os
 import re
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -482,15 +483,20 @@ def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
 @torch.no_grad()
 def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
     """Sample one video per (first frame, prompt), tau ~ p(tau | I, text) of Eq. 1, with the Euler ODE sampler
-    (Eq. 2) from seeded noise x_0.
+    (Eq. 2) from seeded noise x_0, `batch` videos a pass (a progress line after each when there are several).
     Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
     x_0 = seeded_noise(model, len(texts), seed)
-    out = []
+    out, start = [], time.time()
     for i in range(0, len(texts), batch):
         c = model.condition(frame0[i:i + batch], texts[i:i + batch])
         dev = next(model.parameters()).device
         x_1 = flow.sample_ode(lambda x, t: model(x, t, c), x_0[i:i + batch].to(dev), steps)
         out.append(model.decode(x_1, frame0[i:i + batch]))
+        done = min(i + batch, len(texts))
+        if batch < len(texts):
+            spent = time.time() - start
+            print(f"  sampled {done}/{len(texts)} videos, {spent:.0f} s, ETA {spent / done * (len(texts) - done):.0f} s",
+                  flush=True)
     return np.concatenate(out)
 
 

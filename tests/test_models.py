@@ -102,13 +102,16 @@ def test_unknown_backend_is_a_clear_error():
         models.make_model("nope")
 
 
-def test_generate_is_deterministic_and_independent_of_batching(small):
+def test_generate_is_deterministic_and_independent_of_batching(small, capsys):
     rng = np.random.default_rng(1)
     scenes = [world.random_scene(rng) for _ in range(3)]
     frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
     texts = ["nothing moves"] * 3
     a = models.generate(small, frame0, texts, steps=3, seed=5)
+    assert capsys.readouterr().out == ""                 # one pass: no progress lines
     b = models.generate(small, frame0, texts, steps=3, seed=5, batch=2)
+    lines = capsys.readouterr().out.splitlines()          # a progress line after each of the two passes
+    assert [line.split(",")[0].strip() for line in lines] == ["sampled 2/3 videos", "sampled 3/3 videos"]
     assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
     assert np.array_equal(a, b)
     assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated
