@@ -728,7 +728,7 @@ class LTX2Video(nn.Module):
     backend = "ltx2"
 
     def __init__(self, transformer, vae, text_encoder, tokenizer, connectors, frames: int, height: int, width: int,
-                 fps: float = 24.0, max_sequence_length: int = 128):
+                 fps: float = 24.0, max_sequence_length: int = 1024):
         super().__init__()
         self.transformer, self.vae, self.text_encoder, self.connectors = transformer, vae, text_encoder, connectors
         self.tokenizer = tokenizer
@@ -741,9 +741,11 @@ class LTX2Video(nn.Module):
 
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
-    def from_pretrained(cls, path: str, frames: int = 121, height: int = 384, width: int = 576, dtype=torch.bfloat16):
+    def from_pretrained(cls, path: str, frames: int = 121, height: int = 384, width: int = 576, dtype=torch.bfloat16,
+                        max_sequence_length: int = 1024):
         """Load the components from a local diffusers LTX-2 directory (e.g. a snapshot of Lightricks/LTX-2);
-        Table 3's training resolution and frame count are the defaults."""
+        Table 3's training resolution and frame count are the defaults, and diffusers' LTX-2 pipelines' prompt
+        length (1024 tokens: a step-by-step description D is long)."""
         _require("diffusers", "transformers", "peft")
         if not os.path.isdir(path):
             raise FileNotFoundError(f"LTX-2 weights not found at {path!r} (a local diffusers directory is needed; "
@@ -756,7 +758,8 @@ class LTX2Video(nn.Module):
                    AutoencoderKLLTX2Video.from_pretrained(path, subfolder="vae", **load),
                    AutoModelForCausalLM.from_pretrained(path, subfolder="text_encoder", **load),
                    AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
-                   LTX2TextConnectors.from_pretrained(path, subfolder="connectors", **load), frames, height, width)
+                   LTX2TextConnectors.from_pretrained(path, subfolder="connectors", **load), frames, height, width,
+                   max_sequence_length=max_sequence_length)
 
     @classmethod
     def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0):
@@ -819,7 +822,9 @@ class LTX2Video(nn.Module):
     def condition(self, frame0, texts: list[str]) -> dict:
         """c = (first frame (B, H, W, 3) uint8, prompts) -> {image latent (B, C, 1, h, w), the connectors' video and
         audio text embeddings, their mask}. The text path mirrors diffusers' LTX-2 pipeline: Gemma hidden states of
-        every layer, stacked, left-padded, through the text connectors."""
+        every layer, stacked, left-padded, through the text connectors. A prompt longer than max_sequence_length
+        is an error (check_prompts), not cut: a D cut short would be another D."""
+        self.check_prompts(texts)
         dev = next(self.transformer.parameters()).device
         self.tokenizer.padding_side = "left"
         ids = self.tokenizer([t.strip() for t in texts], padding="max_length", max_length=self.max_len,
@@ -829,6 +834,14 @@ class LTX2Video(nn.Module):
         emb = torch.stack(hs, dim=-1).flatten(2, 3)
         video, audio, mask = self.connectors(emb.to(self.connectors.dtype), ids.attention_mask, padding_side="left")
         return {"image_latent": self._image_latent(frame0), "text": video, "audio_text": audio, "mask": mask}
+
+    def check_prompts(self, texts: list[str]) -> None:
+        """ValueError naming the first prompt longer than the text path takes (max_sequence_length tokens)."""
+        for t in texts:
+            n = len(self.tokenizer(t.strip(), add_special_tokens=True).input_ids)
+            if n > self.max_len:
+                raise ValueError(f"prompt {t[:60]!r}... has {n} tokens; LTX-2's text path takes at most "
+                                 f"{self.max_len} (max_sequence_length)")
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
         B = x_t.shape[0]

@@ -1083,6 +1083,12 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
                 model.tokenizer([r["task"], r["description"]])
             except ValueError as e:
                 raise ValueError(f"{path} line {r['line']}: {e}") from None
+    elif hasattr(model, "check_prompts"):   # a prompt the real text path would refuse: say so now, not mid-run
+        for r in rows:
+            try:
+                model.check_prompts([r["task"], r["description"]])
+            except ValueError as e:
+                raise ValueError(f"{path} line {r['line']}: {e}") from None
     if len(rows) < need:
         raise ValueError(f"dataset {path!r} has {len(rows)} rows, fewer than {flag} {need}")
     return [SimpleNamespace(frame0=np.asarray(Image.open(r["image"]).convert("RGB").resize(size, Image.BILINEAR)),

@@ -181,6 +181,22 @@ def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
     assert all(torch.allclose(a, b, atol=1e-6, rtol=1e-5) for a, b in zip(plain, ckpt))
 
 
+def test_a_prompt_longer_than_ltx2s_text_path_is_an_error_not_cut(ltx, tmp_path):
+    """LTX-2's text path pads to max_sequence_length tokens (1024 as diffusers' pipelines; the tiny model 16); a
+    longer D used to be cut silently. Now condition() refuses it, and train.py names the dataset line up front."""
+    m, f0, _, _ = ltx
+    long = " ".join(["red square moves right 1"] * 5)
+    with pytest.raises(ValueError, match=r"has \d+ tokens; LTX-2's text path takes at most 16"):
+        m.condition(f0[:1], [long])
+    data = _toy_dataset(tmp_path / "data", 2)
+    row = json.loads(open(data).readline())
+    with open(data, "a") as f:
+        f.write(json.dumps({**row, "description": long}) + "\n")
+    r = run("train.py", "--model", "ltx2-tiny", "--dataset", data, "--steps", "1", "--run_dir", str(tmp_path / "r"))
+    assert r.returncode == 2 and "data.jsonl line 3" in r.stderr and "at most 16" in r.stderr, r.stderr[-500:]
+    assert "Traceback" not in r.stderr and not (tmp_path / "r").exists()
+
+
 def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     with pytest.raises(ImportError, match="no_such_package"):
         models._require("no_such_package")
