@@ -1133,6 +1133,8 @@ def rl_stage(args: Args) -> dict:
     JUDGE = make_judge(args)
     pairs = load_pairs(args, model)
     BENCH = load_bench(args, model)
+    if BENCH is None and args.model != "toy":
+        say("note: no --eval_dataset, so this real model is evaluated on the toy bench's sprite frames", flush=True)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
     keys = ("task", "agent", "consistency", "avg", "seconds_per_video")
