@@ -9,7 +9,7 @@ transformer block (self-attention over space-time tokens, cross-attention to the
 is predicted by *dynamic neighbourhood advection* (DNA, Finn et al. 2016): each frame is the previous one with
 every pixel a softmax-weighted mix of its 3x3 neighbours, plus a residual -- so a moved sprite keeps its exact
 pixels. Measured on the toy: with a plain residual on the first frame, moving sprites came out as coloured blobs
-(consistency 0.06 given the error-free D after the same 2000 steps); the README's Results section has the table.
+(consistency 0.06 given the error-free D after the same 2000 steps); docs/base.md has the table.
 With `evidence` (the shipped base: a 5x5 window) each of the 9 moves' logits also gets the log-likelihood of x_t
 under that move, log N(x_t | t x_1, (1 - t)^2 I) summed over the window around the pixel -- the data term of the
 Bayes posterior over moves, which a flow model needs to *commit* to one motion when the prompt leaves it open.
@@ -17,9 +17,9 @@ Without it the base blended the possible motions into smears whenever the prompt
 T: consistency 0.125). A plain window also pools a moving sprite's evidence into a still neighbour and drags it
 along; `evidence_by_colour` (on in the shipped base) pools a sprite pixel's evidence only over its own sprite
 (`_pool_evidence`). `ground` (off in the shipped base) adds `Grounding`, a path from each word to a place in
-the first frame; tried with goal-captioned pretraining, it did not help (README). `relate` (off in the shipped base)
+the first frame; tried with goal-captioned pretraining, it did not help (docs/given-t.md). `relate` (off in the shipped base)
 adds `Relate`, every pixel's offset to where the caption points; tried likewise, its heads did not learn to point
-(README). The README has the measurements.
+(docs/given-t.md, with the measurements).
 
 Latent space of the toy model: the generated frames 1..F-1 as a tensor (B, T=F-1, 3, H, W) in [-1, 1]; frame 0
 is the clean condition, not generated (as in image-to-video LTX-2, where first-frame tokens sit at t = 1 here).
@@ -177,11 +177,11 @@ class Relate(nn.Module):
     units of 4 px) and the attention map itself as input channels of the U-Net. Grounding gives the words a
     place; this gives every pixel its offset to that place, so "move towards the blue circle until beside it" is
     a rule a 3x3 conv can apply where the agent is, at every frame (the offset is read where the sprite is now).
-    Returns (B, 3 * heads, H, W). Measured (README, "A base with offsets to where the caption points"): pretrained
+    Returns (B, 3 * heads, H, W). Measured (docs/given-t.md, "A base with offsets to where the caption points"): pretrained
     with 25% goal captions, no head learned to point at the target or the agent (each within 1 px of the target in
     at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base. train.py
-    --point_weight supervises heads 0 and 1 in pretraining (README, "Teaching the offset heads to point"), and
-    cfg.relate_text gives Relate its own text encoder (README, "Relate with its own text encoder")."""
+    --point_weight supervises heads 0 and 1 in pretraining (docs/given-t.md, "Teaching the offset heads to point"), and
+    cfg.relate_text gives Relate its own text encoder (docs/given-t.md, "Relate with its own text encoder")."""
 
     def __init__(self, dim: int, heads: int, feat: int = 16):
         super().__init__()
@@ -423,7 +423,7 @@ class ToyVideoFlow(nn.Module):
         apart), and a background pixel (prev_p ~ 0 after subtracting the background) keeps its own evidence only:
         the pixels of one rigid sprite decide together, and a still neighbour never pools a moving sprite's
         evidence. (Tried and dropped: also pooling over the footprint after the move, with the evidence detached --
-        consistency given T fell to 0.14; README.)"""
+        consistency given T fell to 0.14; docs/base.md.)"""
         ev = self.cfg.evidence
         if not self.cfg.evidence_by_colour:
             return F_.avg_pool2d(ll, ev, 1, ev // 2, divisor_override=1)
@@ -445,7 +445,7 @@ class ToyVideoFlow(nn.Module):
         The log-likelihood of that hypothesis is the sum of ll[m] over the landing footprint (a background
         pixel's ll is 0: the background is subtracted): the sprite's own pixels, pooled by colour as above, plus
         the background pixels it moves onto, its leading edge. E_s(m) sums both. Without the leading edge (by
-        colour alone) a leading-edge pixel decided on its own noisy evidence, and given T sprites grew (README).
+        colour alone) a leading-edge pixel decided on its own noisy evidence, and given T sprites grew (docs/base.md).
         A background pixel p then takes its neighbouring sprite's colour by move m with that sprite's own
         probability of m: logit E_s(m), E_s read at the sprite pixels among p's sources; the moves that leave p
         background share the sprite's remaining mass (their colour is the same, so how they share it does not

@@ -68,7 +68,7 @@ class Args:
     """metrics (JSON lines), plots and GIFs go here"""
     # ---- pretrain ----
     pretrain_steps: int = 2500
-    """pretraining optimizer steps (2500 for the shipped base; its predecessors had 2000, README)"""
+    """pretraining optimizer steps (2500 for the shipped base; its predecessors had 2000, docs/base.md)"""
     pretrain_batch: int = 32
     """pretraining videos per step"""
     pretrain_lr: float = 1e-3
@@ -86,7 +86,7 @@ class Args:
     """share of empty captions"""
     p_goal: float = 0.0
     """share of goal-directed clips with goal captions ("red square moves to the blue circle"); 0.25 was tried
-    and broke D-following (README), so it is off"""
+    and broke D-following (docs/base.md), so it is off"""
     log_every: int = 50
     """steps between progress lines"""
     width: int = 32
@@ -100,26 +100,26 @@ class Args:
     evidence_lead: bool = True
     """toy base, with --evidence_by_colour: a sprite's move evidence also counts the background pixels it moves onto,
     and those pixels follow the sprite with its own probability of the move (models.ToyVideoFlow._lead_evidence);
-    without it, given T the sprites grew (README); --no-evidence_lead: the previous base"""
+    without it, given T the sprites grew (docs/base.md); --no-evidence_lead: the previous base"""
     ground: bool = False
     """toy base: text tokens point into the first frame before the U-Net reads them (models.Grounding); tried with
-    --p_goal 0.25, it did not help (README), so it is off"""
+    --p_goal 0.25, it did not help (docs/given-t.md), so it is off"""
     relate: bool = False
     """toy base: every pixel gets its offset to where the caption points in the first frame (models.Relate); tried
-    with --p_goal 0.25, its heads did not learn to point (README), so it is off"""
+    with --p_goal 0.25, its heads did not learn to point (docs/given-t.md), so it is off"""
     relate_text: bool = False
     """toy base with --relate: Relate reads the caption through its own text encoder, so --point_weight trains that
-    encoder and leaves the U-Net's alone (models.ToyConfig.relate_text). Measured (README, "Relate with its own
+    encoder and leaves the U-Net's alone (models.ToyConfig.relate_text). Measured (docs/given-t.md, "Relate with its own
     text encoder"): the base still follows D and its heads find the agent and target given T in about 40% of
     pairs, but the Executor given T learns no better from it"""
     point_weight: float = 0.0
     """toy base with --relate: weight of pointing_loss in pretraining, which teaches Relate's head 0 to look at the
     mover the caption names and head 1 at the sprite a goal caption names as target, else the mover (0 = off: the
-    heads learn only from the video loss, and did not learn to point, README)"""
+    heads learn only from the video loss, and did not learn to point, docs/given-t.md)"""
     point_goal_only: bool = False
     """toy base with --point_weight: supervise head 1 only where a goal caption names a target, not at the mover
-    otherwise (the README's form (a): with the shared text encoder it broke D-following; with --relate_text, base (f),
-    the heads point given T 0.69 / 0.65 and it follows D, but given T it solves 0.315 and WMSD gains nothing, README)"""
+    otherwise (docs/given-t.md's form (a): with the shared text encoder it broke D-following; with --relate_text, base (f),
+    the heads point given T 0.69 / 0.65 and it follows D, but given T it solves 0.315 and WMSD gains nothing)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""
