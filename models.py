@@ -570,6 +570,14 @@ def merge_lora(model: nn.Module) -> nn.Module:
     return out
 
 
+def copy_for_adapter(model: nn.Module) -> nn.Module:
+    """A second network for another LoRA (Alg. 2's Demonstrator phi, train.py --alternate). The toy model is copied
+    whole; a real backend copies only its transformer, the part LoRA adapts, and shares its frozen parts (VAE, text
+    and image encoders) with `model`: at LTX-2's size the text encoder is itself a large language model."""
+    frozen = [m for name, m in model.named_children() if name != "transformer"] if hasattr(model, "transformer") else []
+    return copy.deepcopy(model, {id(m): m for m in frozen})   # deepcopy's memo: these are "already copied"
+
+
 @contextlib.contextmanager
 def adapters_disabled(model: nn.Module):
     """Inside this block the model is the Demonstrator: the same base weights with every adapter switched off."""

@@ -1150,7 +1150,7 @@ def rl_stage(args: Args) -> dict:
         fixed = {}
     demo_net = demo_opt = demo_params = None
     if args.alternate > 0:       # Alg. 2: a Demonstrator phi of its own, trained in every N-th iteration
-        demo_net = copy.deepcopy(model)
+        demo_net = models.copy_for_adapter(model)
         models.add_lora(demo_net, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)

@@ -197,6 +197,28 @@ def test_a_prompt_longer_than_ltx2s_text_path_is_an_error_not_cut(ltx, tmp_path)
     assert "Traceback" not in r.stderr and not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_alg2s_demonstrator_copies_the_transformer_and_shares_the_frozen_parts(cls):
+    """train.py --alternate: phi gets its own transformer and LoRA; the VAE and the encoders are the same objects,
+    so a real run does not hold them twice; training phi's LoRA leaves the Executor's network as it was."""
+    m, f0, c_E, _ = _tiny(cls)
+    phi = models.copy_for_adapter(m)
+    frozen = [n for n, _ in m.named_children() if n != "transformer"]
+    assert frozen and all(getattr(phi, n) is getattr(m, n) for n in frozen)
+    assert phi.transformer is not m.transformer
+    assert not {p.data_ptr() for p in phi.transformer.parameters()} & {p.data_ptr() for p in m.transformer.parameters()}
+    x = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([0.3, 0.6])
+    with torch.no_grad():
+        before = m(x, t, c_E)
+    models.add_lora(phi, 4, 8.0)
+    for p in models.lora_parameters(phi):
+        p.data.normal_(0, 0.1)
+    with torch.no_grad():
+        assert torch.equal(m(x, t, c_E), before) and not torch.allclose(phi(x, t, c_E), before)
+    assert not any("lora_" in n for n, _ in m.named_parameters())
+
+
 def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     with pytest.raises(ImportError, match="no_such_package"):
         models._require("no_such_package")
