@@ -1240,6 +1240,8 @@ def rl_stage(args: Args) -> dict:
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
+    if BENCH is not None:   # the Demonstrator's D is the bench file's, written by whatever VLM made it
+        rows = {name.replace("toy VLM's D", "the bench file's D"): r for name, r in rows.items()}
     table = ["| model | task | agent | consistency | avg | s/video |", "|---|---|---|---|---|---|"]
     table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
               f"{r['seconds_per_video']:.4f} |" for name, r in rows.items()]

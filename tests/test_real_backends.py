@@ -248,6 +248,7 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "| WMSD (awm, T)" in r.stdout
     assert ("evaluated on the toy bench" in r.stdout) == ("--eval_dataset" not in extra)
+    assert ("(Demonstrator, the bench file's D)" in r.stdout) == ("--eval_dataset" in extra)
     assert set(torch.load(tmp_path / "executor_awm.pt", weights_only=True)["lora"]) and (tmp_path / "state.pt").exists()
     step = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line][0]
     assert step["invalid"] + sum(1 for a in step["A"] if a != 0) >= 1 and step["r_distill"] < 0
