@@ -1076,19 +1076,15 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
     from PIL import Image
     size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
     rows = world.load_dataset(path)
-    if model.backend == "toy":   # the toy model knows the toy world's words and agents only: say which line does not
-        for r in rows:
-            try:
+    for r in rows:   # what the model would refuse mid-run, said now with its line
+        try:
+            if model.backend == "toy":          # the toy model knows the toy world's words and agents only
                 world.parse_task(r["task"])
                 model.tokenizer([r["task"], r["description"]])
-            except ValueError as e:
-                raise ValueError(f"{path} line {r['line']}: {e}") from None
-    elif hasattr(model, "check_prompts"):   # a prompt the real text path would refuse: say so now, not mid-run
-        for r in rows:
-            try:
+            elif hasattr(model, "check_prompts"):    # a real text path's length limit (LTX-2)
                 model.check_prompts([r["task"], r["description"]])
-            except ValueError as e:
-                raise ValueError(f"{path} line {r['line']}: {e}") from None
+        except ValueError as e:
+            raise ValueError(f"{path} line {r['line']}: {e}") from None
     if len(rows) < need:
         raise ValueError(f"dataset {path!r} has {len(rows)} rows, fewer than {flag} {need}")
     return [SimpleNamespace(frame0=np.asarray(Image.open(r["image"]).convert("RGB").resize(size, Image.BILINEAR)),
