@@ -378,7 +378,8 @@ def format_table(res: dict, title: str = "") -> str:
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
     if res["by_vlm_error"]:   # not known on a real-image bench
-        rows.append("task by the toy VLM's D: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+        rows.append("task by the toy VLM's D: "
+                    + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
     if res.get("faults"):
         rows.append("consistency failed by (videos): " + ", ".join(f"{k} {v}" for k, v in res["faults"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "
@@ -514,7 +515,8 @@ def main(argv=None):
                    help="toy (reward.py's judges) | qwen-vl (--judge_path; the bench prompts of Figs. 15-17)")
     p.add_argument("--judge_path", default="", help="--judge qwen-vl: the local transformers directory")
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
-                   "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the toy bench")
+                   "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
+                   "toy bench")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=200, help="bench pairs to evaluate (1..200)")

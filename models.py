@@ -17,9 +17,9 @@ Without it the base blended the possible motions into smears whenever the prompt
 T: consistency 0.125). A plain window also pools a moving sprite's evidence into a still neighbour and drags it
 along; `evidence_by_colour` (on in the shipped base) pools a sprite pixel's evidence only over its own sprite
 (`_pool_evidence`). `ground` (off in the shipped base) adds `Grounding`, a path from each word to a place in
-the first frame; tried with goal-captioned pretraining, it did not help (docs/given-t.md). `relate` (off in the shipped base)
-adds `Relate`, every pixel's offset to where the caption points; tried likewise, its heads did not learn to point
-(docs/given-t.md, with the measurements).
+the first frame; tried with goal-captioned pretraining, it did not help (docs/given-t.md). `relate` (off in the
+shipped base) adds `Relate`, every pixel's offset to where the caption points; tried likewise, its heads did not
+learn to point (docs/given-t.md, with the measurements).
 
 Latent space of the toy model: the generated frames 1..F-1 as a tensor (B, T=F-1, 3, H, W) in [-1, 1]; frame 0
 is the clean condition, not generated (as in image-to-video LTX-2, where first-frame tokens sit at t = 1 here).
@@ -177,11 +177,12 @@ class Relate(nn.Module):
     units of 4 px) and the attention map itself as input channels of the U-Net. Grounding gives the words a
     place; this gives every pixel its offset to that place, so "move towards the blue circle until beside it" is
     a rule a 3x3 conv can apply where the agent is, at every frame (the offset is read where the sprite is now).
-    Returns (B, 3 * heads, H, W). Measured (docs/given-t.md, "A base with offsets to where the caption points"): pretrained
-    with 25% goal captions, no head learned to point at the target or the agent (each within 1 px of the target in
-    at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base. train.py
-    --point_weight supervises heads 0 and 1 in pretraining (docs/given-t.md, "Teaching the offset heads to point"), and
-    cfg.relate_text gives Relate its own text encoder (docs/given-t.md, "Relate with its own text encoder")."""
+    Returns (B, 3 * heads, H, W). Measured (docs/given-t.md, "A base with offsets to where the caption points"):
+    pretrained with 25% goal captions, no head learned to point at the target or the agent (each within 1 px of
+    the target in at most 8% of bench pairs), so the offsets are there and unused; off in the shipped base.
+    train.py --point_weight supervises heads 0 and 1 in pretraining (docs/given-t.md, "Teaching the offset heads to
+    point"), and cfg.relate_text gives Relate its own text encoder (docs/given-t.md, "Relate with its own text
+    encoder")."""
 
     def __init__(self, dim: int, heads: int, feat: int = 16):
         super().__init__()
@@ -495,8 +496,8 @@ def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed:
         done = min(i + batch, len(texts))
         if batch < len(texts):
             spent = time.time() - start
-            print(f"  sampled {done}/{len(texts)} videos, {spent:.0f} s, ETA {spent / done * (len(texts) - done):.0f} s",
-                  flush=True)
+            eta = spent / done * (len(texts) - done)
+            print(f"  sampled {done}/{len(texts)} videos, {spent:.0f} s, ETA {eta:.0f} s", flush=True)
     return np.concatenate(out)
 
 

@@ -118,8 +118,9 @@ class Args:
     heads learn only from the video loss, and did not learn to point, docs/given-t.md)"""
     point_goal_only: bool = False
     """toy base with --point_weight: supervise head 1 only where a goal caption names a target, not at the mover
-    otherwise (docs/given-t.md's form (a): with the shared text encoder it broke D-following; with --relate_text, base (f),
-    the heads point given T 0.69 / 0.65 and it follows D, but given T it solves 0.315 and WMSD gains nothing)"""
+    otherwise (docs/given-t.md's form (a): with the shared text encoder it broke D-following; with --relate_text,
+    base (f), the heads point given T 0.69 / 0.65 and it follows D, but given T it solves 0.315 and WMSD gains
+    nothing)"""
     # ---- distill (and later RL) ----
     init: str = ""
     """base checkpoint the Executor starts from (default: the shipped checkpoints/base.pt)"""

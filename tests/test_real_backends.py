@@ -159,7 +159,7 @@ def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
     activations, and the LoRA gradients of Eq. 12's anchor are the same."""
     m, f0, c_E, c_D = _tiny(cls)
     models.add_lora(m, 4, 8.0)
-    for n, p in m.named_parameters():      # B != 0: the Executor differs from the Demonstrator, the anchor has a gradient
+    for n, p in m.named_parameters():   # B != 0: the Executor differs from the Demonstrator, the anchor has a gradient
         if "lora_B" in n:
             p.data.normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
     calls, block = [], m.transformer.transformer_blocks[0]
@@ -233,8 +233,9 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     assert r.returncode == 2 and "HunyuanVideo-1.5 weights not found" in r.stderr and "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("model,judge,extra", [("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
-                                              ("hunyuan15-tiny", "qwen-vl-tiny", ["--eval_dataset", "held"])])
+@pytest.mark.parametrize("model,judge,extra", [
+    ("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
+    ("hunyuan15-tiny", "qwen-vl-tiny", ["--eval_dataset", "held"])])
 def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
     judgments (random weights answer with arbitrary tokens: malformed, counted, skipped), r_distill, advantages,
@@ -268,8 +269,9 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
         import train
         assert set(bench.REAL_MODELS) == set(train.REAL_MODELS)   # bench.py offers what train.py loads
         (tmp_path / "bad.pt").write_bytes(b"garbage")
-        for argv, msg in ((["--lora", str(tmp_path / "bad.pt")], "corrupt"), (["--lora", lora, "--model", "toy"],
-                          "--lora loads a real model's Executor"), (["--condition", "oracle"], "a --dataset bench has")):
+        for argv, msg in ((["--lora", str(tmp_path / "bad.pt")], "corrupt"),
+                          (["--lora", lora, "--model", "toy"], "--lora loads a real model's Executor"),
+                          (["--condition", "oracle"], "a --dataset bench has")):
             r = run("bench.py", "--model", model, "--dataset", held, "--n", "2", *argv)
             assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr[-500:])
 
