@@ -57,7 +57,7 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
-REAL_MODELS = ("ltx2", "hunyuan15")   # --model: train.REAL_MODELS, the paper's two bases
+REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases (train.py's too)
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction")
 
 
@@ -544,6 +544,10 @@ def main(argv=None):
                    help="a --relate base, evaluated (or, forced, --pointing) with Relate altered: heads 0 and 1 forced "
                         "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
     a = p.parse_args(argv)
+    a.real = a.model != "toy" or a.judge != "toy" or bool(a.dataset)     # the real path: train.py's loaders
+    if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
+        p.error("--compare, --handoff, --rank_rdistill, --pointing and --relate_probe are toy diagnostics: not with "
+                "--model, --judge or --dataset")
     if a.compare:
         try:
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
@@ -557,7 +561,6 @@ def main(argv=None):
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}" if a.n > 0 else f"--n must be >= 1, got {a.n}")
     if a.batch < 1:
         p.error(f"--batch must be >= 1, got {a.batch}")
-    real = a.model != "toy" or a.judge != "toy" or a.dataset
     if a.model in REAL_MODELS and not a.model_path:
         p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
     if a.judge == "qwen-vl" and not a.judge_path:
@@ -568,9 +571,6 @@ def main(argv=None):
         p.error("--checkpoint is a toy model file; a real model is --model_path (+ --lora for its Executor)")
     if a.dataset and a.condition not in ("task", "vlm", "empty"):
         p.error(f"--condition {a.condition} needs the toy bench's scenes; a --dataset bench has task, vlm, empty")
-    if real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
-        p.error("--compare, --handoff, --rank_rdistill, --pointing and --relate_probe are toy diagnostics: not with "
-                "--model, --judge or --dataset")
     if not 0 <= a.error_rate <= 1:
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
@@ -590,7 +590,7 @@ def main(argv=None):
     torch.set_num_threads(a.threads)
     judge = pairs = None
     try:
-        if real:         # the loaders train.py uses (train imports this module, so not at the top)
+        if a.real:       # the loaders train.py uses (train imports this module, so not at the top)
             import train
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
                              init=a.checkpoint or "")
@@ -608,7 +608,7 @@ def main(argv=None):
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     model.eval()
-    if real:
+    if a.real:
         _run_one(a, model, judge, pairs)
         return
     probe = contextlib.nullcontext()
@@ -670,7 +670,7 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
             print(json.dumps(res))
         return
     res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs)
-    if a.model != "toy" or a.judge != "toy" or a.dataset:
+    if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
         res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
         title = f"model={name} judge={a.judge} bench={a.dataset or 'toy'} "

@@ -845,9 +845,10 @@ class LTX2Video(nn.Module):
         return {"image_latent": self._image_latent(frame0), "text": video, "audio_text": audio, "mask": mask}
 
     def check_prompts(self, texts: list[str]) -> None:
-        """ValueError naming the first prompt longer than the text path takes (max_sequence_length tokens)."""
-        for t in texts:
-            n = len(self.tokenizer(t.strip(), add_special_tokens=True).input_ids)
+        """ValueError naming the first prompt longer than the text path takes (max_sequence_length tokens); one
+        batched tokenizer call, as condition() makes its own."""
+        ids = self.tokenizer([t.strip() for t in texts], add_special_tokens=True).input_ids
+        for t, n in zip(texts, map(len, ids)):
             if n > self.max_len:
                 raise ValueError(f"prompt {t[:60]!r}... has {n} tokens; LTX-2's text path takes at most "
                                  f"{self.max_len} (max_sequence_length)")
@@ -1049,3 +1050,6 @@ class HunyuanVideo15(nn.Module):
         img = img[:, :, None].to(dev, self.vae.dtype)
         z = torch.cat([self.vae.encode(img[i:i + 1]).latent_dist.mode() for i in range(len(img))]).float()
         return z * self.vae.config.scaling_factor
+
+
+REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of train.py and bench.py: the paper's bases

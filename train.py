@@ -49,7 +49,7 @@ import reward
 import rl
 import world
 
-REAL_MODELS = {"ltx2": models.LTX2Video, "hunyuan15": models.HunyuanVideo15}   # --model: the paper's two bases
+REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases
 
 
 @dataclass
@@ -675,7 +675,7 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     from PIL import Image
     pairs = (world.bench_pairs(args.error_rate) if BENCH is None else BENCH)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
-    scale = max(1, scale // max(1, frame0.shape[1] // world.H))     # a real model's frames are large already
+    scale = max(1, scale * world.H // frame0.shape[1])     # a real model's frames are large already (bench.save_strip)
     batch = args.micro_batch or n
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
@@ -1095,14 +1095,14 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
             for r in rows]
 
 
-def load_bench(args: Args, model) -> list | None:
+def load_bench(args: Args, model, train: list) -> list | None:
     """--eval_dataset's first --eval_n rows, the bench every evaluation uses; None: the toy bench. A row that is
-    also a training row (same image and task) is an error: the bench is held out."""
+    also a training row of `train` (load_pairs; same image and task) is an error: the bench is held out."""
     if not args.eval_dataset:
         return None
     pairs = dataset_pairs(args.eval_dataset, model, args.eval_n, "--eval_n")[:args.eval_n]
     if args.dataset:
-        train_rows = {(r["image"], r["task"]) for r in world.load_dataset(args.dataset)}
+        train_rows = {(p.image, p.task.text) for p in train}
         shared = [p for p in pairs if (p.image, p.task.text) in train_rows]
         if shared:
             raise ValueError(f"{len(shared)} of the {len(pairs)} bench rows of {args.eval_dataset!r} are also in "
@@ -1129,7 +1129,7 @@ def rl_stage(args: Args) -> dict:
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
     JUDGE = make_judge(args)
     pairs = load_pairs(args, model)
-    BENCH = load_bench(args, model)
+    BENCH = load_bench(args, model, pairs)
     if BENCH is None and args.model != "toy":
         say("note: no --eval_dataset, so this real model is evaluated on the toy bench's sprite frames", flush=True)
     if rank0:

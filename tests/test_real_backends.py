@@ -271,7 +271,8 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
         (tmp_path / "bad.pt").write_bytes(b"garbage")
         for argv, msg in ((["--lora", str(tmp_path / "bad.pt")], "corrupt"),
                           (["--lora", lora, "--model", "toy"], "--lora loads a real model's Executor"),
-                          (["--condition", "oracle"], "a --dataset bench has")):
+                          (["--condition", "oracle"], "a --dataset bench has"),
+                          (["--compare", "x=runs"], "are toy diagnostics")):
             r = run("bench.py", "--model", model, "--dataset", held, "--n", "2", *argv)
             assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr[-500:])
 
