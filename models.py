@@ -572,11 +572,15 @@ def merge_lora(model: nn.Module) -> nn.Module:
 
 
 def copy_for_adapter(model: nn.Module) -> nn.Module:
-    """A second network for another LoRA (Alg. 2's Demonstrator phi, train.py --alternate). The toy model is copied
-    whole; a real backend copies only its transformer, the part LoRA adapts, and shares its frozen parts (VAE, text
-    and image encoders) with `model`: at LTX-2's size the text encoder is itself a large language model."""
-    frozen = [m for name, m in model.named_children() if name != "transformer"] if hasattr(model, "transformer") else []
-    return copy.deepcopy(model, {id(m): m for m in frozen})   # deepcopy's memo: these are "already copied"
+    """A second network for another LoRA (Alg. 2's Demonstrator phi, train.py --alternate), made from the base
+    before any adapter is added. It owns its modules and shares every tensor of `model` (weights and buffers;
+    deepcopy's memo says they are "already copied"), so the LoRA added to it later is its own while the frozen base
+    is held once: at LTX-2's size a second transformer, or a second text encoder (itself a large language model),
+    would not fit beside the first. Only adapters train, so the shared base stays the base."""
+    if lora_parameters(model):
+        raise ValueError("copy_for_adapter copies the base: call it before adding adapters, which it would share")
+    shared = {id(t): t for t in (*model.parameters(), *model.buffers())}
+    return copy.deepcopy(model, shared)
 
 
 @contextlib.contextmanager

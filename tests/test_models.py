@@ -77,6 +77,32 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(c
         assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)
 
 
+def test_a_second_network_for_alg2_shares_the_base_and_trains_its_own_lora():
+    """models.copy_for_adapter (train.py --alternate's phi): the same base tensors, held once; its own LoRA, whose
+    training leaves the Executor's network alone; made from the base only."""
+    torch.manual_seed(0)
+    model = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
+    torch.nn.init.normal_(model.out.weight, std=0.1)
+    x, t, c = _inputs(model, ["red square moves left 2 for 3 frames then stops", ""])
+    phi = models.copy_for_adapter(model)
+    models.add_lora(phi, rank=4, alpha=8, convs=True)
+    models.add_lora(model, rank=4, alpha=8, convs=True)
+    base = lambda net: {n: p for n, p in net.named_parameters() if "lora_" not in n}   # noqa: E731
+    assert all(p is base(model)[n] for n, p in base(phi).items()) and len(base(phi)) == len(base(model))
+    with torch.no_grad():
+        before = model(x, t, c)
+    opt = torch.optim.SGD(models.lora_parameters(phi), lr=0.1)
+    for _ in range(2):                  # two steps, so that B and then A both move
+        opt.zero_grad()
+        phi(x, t, c).pow(2).mean().backward()
+        opt.step()
+    with torch.no_grad():
+        assert torch.equal(model(x, t, c), before) and not torch.allclose(phi(x, t, c), before)
+    assert all(p.grad is None for p in models.lora_parameters(model))
+    with pytest.raises(ValueError, match="before adding adapters"):
+        models.copy_for_adapter(model)
+
+
 def test_checkpoint_round_trip_and_clear_errors(tmp_path, small):
     path = str(tmp_path / "m.pt")
     models.save_checkpoint(small, path, {"note": "x"})

@@ -198,25 +198,36 @@ def test_a_prompt_longer_than_ltx2s_text_path_is_an_error_not_cut(ltx, tmp_path)
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
-def test_alg2s_demonstrator_copies_the_transformer_and_shares_the_frozen_parts(cls):
-    """train.py --alternate: phi gets its own transformer and LoRA; the VAE and the encoders are the same objects,
-    so a real run does not hold them twice; training phi's LoRA leaves the Executor's network as it was."""
+def test_alg2s_demonstrator_shares_the_base_and_owns_its_lora(cls):
+    """train.py --alternate: phi is a second network over the same base tensors (weights and buffers, the
+    transformer's and the frozen VAE's and encoders'), so a real run holds the base once, with a LoRA of its own:
+    training phi's LoRA leaves the Executor as it was, the Executor's leaves phi, and phi's adapters off is the base."""
     m, f0, c_E, _ = _tiny(cls)
     phi = models.copy_for_adapter(m)
-    frozen = [n for n, _ in m.named_children() if n != "transformer"]
-    assert frozen and all(getattr(phi, n) is getattr(m, n) for n in frozen)
-    assert phi.transformer is not m.transformer
-    assert not {p.data_ptr() for p in phi.transformer.parameters()} & {p.data_ptr() for p in m.transformer.parameters()}
+    tensors = lambda net: {t.data_ptr() for n, t in (*net.named_parameters(), *net.named_buffers()) if "lora_" not in n}
+    assert phi.transformer is not m.transformer and tensors(phi) == tensors(m)
     x = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
     t = torch.tensor([0.3, 0.6])
     with torch.no_grad():
-        before = m(x, t, c_E)
+        base = m(x, t, c_E)
     models.add_lora(phi, 4, 8.0)
-    for p in models.lora_parameters(phi):
+    models.add_lora(m, 4, 8.0)
+    lora_phi, lora_m = models.lora_parameters(phi), models.lora_parameters(m)
+    assert lora_phi and lora_m and not {p.data_ptr() for p in lora_phi} & {p.data_ptr() for p in lora_m}
+    assert tensors(phi) == tensors(m)       # adding the adapters copied no base weight
+    for p in lora_phi:
         p.data.normal_(0, 0.1)
     with torch.no_grad():
-        assert torch.equal(m(x, t, c_E), before) and not torch.allclose(phi(x, t, c_E), before)
-    assert not any("lora_" in n for n, _ in m.named_parameters())
+        v_phi = phi(x, t, c_E)
+        assert torch.equal(m(x, t, c_E), base) and not torch.allclose(v_phi, base)
+    for p in lora_m:
+        p.data.normal_(0, 0.1)
+    with torch.no_grad():
+        assert not torch.allclose(m(x, t, c_E), base) and torch.equal(phi(x, t, c_E), v_phi)
+        with models.adapters_disabled(phi):
+            assert torch.equal(phi(x, t, c_E), base)
+    with pytest.raises(ValueError, match="before adding adapters"):
+        models.copy_for_adapter(m)
 
 
 def test_missing_packages_and_weights_give_clear_errors(tmp_path):
