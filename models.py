@@ -575,8 +575,8 @@ def copy_for_adapter(model: nn.Module) -> nn.Module:
     """A second network for another LoRA (Alg. 2's Demonstrator phi, train.py --alternate), made from the base
     before any adapter is added. It owns its modules and shares every tensor of `model` (weights and buffers;
     deepcopy's memo says they are "already copied"), so the LoRA added to it later is its own while the frozen base
-    is held once: at LTX-2's size a second transformer, or a second text encoder (itself a large language model),
-    would not fit beside the first. Only adapters train, so the shared base stays the base."""
+    is held once (a copy of LTX-2-19b's transformer would add about 38 GB in bf16). Only adapters train, so the
+    shared base stays the base."""
     if lora_parameters(model):
         raise ValueError("copy_for_adapter copies the base: call it before adding adapters, which it would share")
     shared = {id(t): t for t in (*model.parameters(), *model.buffers())}
