@@ -330,6 +330,10 @@ class ToyVideoFlow(nn.Module):
         f0 = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)  # (B, 3, H, W)
         return {"frame0": f0.to(self.coords.device), "ids": self.tokenizer(texts).to(self.coords.device)}
 
+    def check_prompts(self, texts: list[str]) -> None:
+        """ValueError naming a prompt condition() would refuse: an unknown word, or more than max_words."""
+        self.tokenizer(texts)
+
     def latent_shape(self) -> tuple:
         return (self.cfg.frames, 3, self.cfg.size, self.cfg.size)
 
@@ -1012,6 +1016,7 @@ class HunyuanVideo15(nn.Module):
         from diffusers.pipelines.hunyuan_video1_5.pipeline_hunyuan_video1_5_image2video import \
             HunyuanVideo15ImageToVideoPipeline as Pipe
         from PIL import Image
+        self.check_prompts(texts)
         dev = next(self.transformer.parameters()).device
         texts = [t.strip() for t in texts]
         emb, mask = Pipe._get_mllm_prompt_embeds(self.text_encoder, self.tokenizer, texts, dev,
@@ -1023,6 +1028,23 @@ class HunyuanVideo15(nn.Module):
         siglip = self.image_encoder(pixel_values=pix.pixel_values.to(dev, self.image_encoder.dtype)).last_hidden_state
         return {"image_latent": self._image_latent(frame0), "image_embeds": siglip, "text": emb, "mask": mask,
                 "text_2": emb2, "mask_2": mask2}
+
+    def check_prompts(self, texts: list[str]) -> None:
+        """ValueError naming the first prompt longer than the text path takes: the pipeline's encoding pads the
+        chat-formatted prompt to max_sequence_length + crop_start tokens and cuts what is longer, silently (a D cut
+        short would be another D). One batched call of the same chat template, uncut."""
+        import inspect
+
+        from diffusers.pipelines.hunyuan_video1_5.pipeline_hunyuan_video1_5_image2video import \
+            HunyuanVideo15ImageToVideoPipeline as Pipe
+        from diffusers.pipelines.hunyuan_video1_5.pipeline_hunyuan_video1_5_image2video import format_text_input
+        system = inspect.signature(Pipe._get_mllm_prompt_embeds).parameters["system_message"].default
+        ids = self.tokenizer.apply_chat_template(format_text_input([t.strip() for t in texts], system),
+                                                 add_generation_prompt=True, tokenize=True, return_dict=True).input_ids
+        for t, n in zip(texts, map(len, ids)):
+            if n > self.max_len + self.crop_start:
+                raise ValueError(f"prompt {t[:60]!r}... has {n - self.crop_start} tokens; HunyuanVideo-1.5's text "
+                                 f"path takes at most {self.max_len} (max_sequence_length)")
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, c: dict) -> torch.Tensor:
         B, C, F, h, w = x_t.shape

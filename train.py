@@ -1079,11 +1079,9 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
     rows = world.load_dataset(path)
     for r in rows:   # what the model would refuse mid-run, said now with its line
         try:
-            if model.backend == "toy":          # the toy model knows the toy world's words and agents only
+            if model.backend == "toy":          # the toy world's agents and instructions only
                 world.parse_task(r["task"])
-                model.tokenizer([r["task"], r["description"]])
-            elif hasattr(model, "check_prompts"):    # a real text path's length limit (LTX-2)
-                model.check_prompts([r["task"], r["description"]])
+            model.check_prompts([r["task"], r["description"]])   # the toy's words; a real text path's length
         except ValueError as e:
             raise ValueError(f"{path} line {r['line']}: {e}") from None
     if len(rows) < need:

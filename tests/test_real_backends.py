@@ -197,6 +197,24 @@ def test_a_prompt_longer_than_ltx2s_text_path_is_an_error_not_cut(ltx, tmp_path)
     assert "Traceback" not in r.stderr and not (tmp_path / "r").exists()
 
 
+def test_a_prompt_longer_than_hunyuanvideo15s_text_path_is_an_error_not_cut(hy, tmp_path):
+    """HunyuanVideo-1.5's pipeline encoding pads the chat-formatted prompt to max_sequence_length tokens past the
+    cropped system turn (1000; the tiny model 16) and cut a longer one silently, as LTX-2's did. condition() refuses
+    it, and train.dataset_pairs names the dataset line."""
+    import train
+    m, f0, _, _ = hy
+    words = "red square moves right 1".split()
+    with pytest.raises(ValueError, match=r"has 25 tokens; HunyuanVideo-1.5's text path takes at most 16"):
+        m.condition(f0[:1], [" ".join(words * 5)])
+    m.check_prompts([" ".join(words * 3), ""])          # 15 words, and an empty prompt: taken whole
+    data = _toy_dataset(tmp_path / "data", 2)
+    row = json.loads(open(data).readline())
+    with open(data, "a") as f:
+        f.write(json.dumps({**row, "description": " ".join(words * 5)}) + "\n")
+    with pytest.raises(ValueError, match=r"data.jsonl line 3: .*at most 16"):
+        train.dataset_pairs(data, m, 2, "--tasks_per_step")
+
+
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
 def test_alg2s_demonstrator_shares_the_base_and_owns_its_lora(cls):
     """train.py --alternate: phi is a second network over the same base tensors (weights and buffers, the
