@@ -479,6 +479,26 @@ def moving_pixel_weight(x_1: torch.Tensor, frame0: torch.Tensor, weight: float) 
     return 1 + (weight - 1) * moving.float()
 
 
+def distinct_condition(model, frame0, texts: list[str]) -> tuple[dict, torch.Tensor]:
+    """model.condition over the distinct (first frame, prompt) rows only -> (c, index): c has one row per distinct
+    row, in order of first appearance, and row i of the batch is row index[i] of c (`condition_rows`). Alg. 1
+    repeats every (image, T, D) group_size times; a real backend's text encoder and VAE then see each once (4
+    prompts a step instead of 96 at 4 x 24), and the text encoder's stacked hidden states are held for those
+    only. Every value of c must be a tensor with the batch first (all three backends)."""
+    frame0 = np.asarray(frame0)
+    first: dict = {}
+    index = [first.setdefault((f.tobytes(), t), i) for i, (f, t) in enumerate(zip(frame0, texts))]
+    rows = sorted(set(index))
+    position = {r: j for j, r in enumerate(rows)}
+    c = model.condition(frame0[rows], [texts[r] for r in rows])
+    return c, torch.tensor([position[r] for r in index], dtype=torch.long)
+
+
+def condition_rows(c: dict, index: torch.Tensor) -> dict:
+    """The rows `index` of a condition c (every value a tensor with the batch first), as condition() returns them."""
+    return {k: v[index.to(v.device)] for k, v in c.items()}
+
+
 @torch.no_grad()
 def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
     """The bench's x_0 ~ N(0, I), (n, *latent_shape): item i's noise depends only on `seed` and i."""

@@ -905,14 +905,18 @@ def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool, prompts=
 def _parts(net, b: SimpleNamespace, args: Args, executor: bool = True) -> list:
     """This process's b.n rows of a step in micro-batches of at most --micro_batch (0: one part), each with its
     conditions -- c_E (the Executor's prompts; not for a Demonstrator round) and c_D (the descriptions) -- its share
-    of the rows, and `shard`: where its rows lie in the whole batch of b.N (their random draws are the batch's)."""
+    of the rows, and `shard`: where its rows lie in the whole batch of b.N (their random draws are the batch's).
+    The conditions are computed once per distinct (image, prompt) of this process (models.distinct_condition), not
+    once per rollout of a group, and each part takes its rows of them."""
     m = args.micro_batch or b.n
+    c_E, i_E = models.distinct_condition(net, b.frame0, b.prompts) if executor else (None, None)
+    c_D, i_D = models.distinct_condition(net, b.frame0, b.descs)
     parts = []
     for i in range(0, b.n, m):
         r = slice(i, min(i + m, b.n))
         parts.append(SimpleNamespace(rows=r, share=(r.stop - r.start) / b.n, shard=(b.shard[0] + i, b.N),
-                                     c_E=net.condition(b.frame0[r], b.prompts[r]) if executor else None,
-                                     c_D=net.condition(b.frame0[r], b.descs[r])))
+                                     c_E=models.condition_rows(c_E, i_E[r]) if executor else None,
+                                     c_D=models.condition_rows(c_D, i_D[r])))
     return parts
 
 

@@ -248,6 +248,26 @@ def test_alg2s_demonstrator_shares_the_base_and_owns_its_lora(cls):
         models.copy_for_adapter(m)
 
 
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_a_repeated_image_and_prompt_is_encoded_once(cls, monkeypatch):
+    """models.distinct_condition: the text encoders and the VAE see each distinct (first frame, prompt) once, and
+    the rows it hands back are condition()'s for the whole batch. Rows 0 and 4 share a frame, not a prompt."""
+    m, f0, _, _ = _tiny(cls)
+    texts = ["[red square]: move right", "[blue circle]: move up"]
+    rows = [0, 0, 1, 0, 0, 1, 1]
+    frames, prompts = f0[rows], [texts[i] for i in rows]
+    prompts[4] = texts[1]
+    want = m.condition(frames, prompts)
+    seen, condition = [], m.condition
+    monkeypatch.setattr(m, "condition", lambda f, t: seen.append(list(t)) or condition(f, t))
+    c, index = models.distinct_condition(m, frames, prompts)
+    assert seen == [[texts[0], texts[1], texts[1]]] and index.tolist() == [0, 0, 1, 0, 2, 1, 1]
+    got = models.condition_rows(c, index)
+    assert got.keys() == want.keys()
+    for k in want:
+        assert torch.allclose(got[k].float(), want[k].float(), atol=1e-5), k
+
+
 def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     with pytest.raises(ImportError, match="no_such_package"):
         models._require("no_such_package")

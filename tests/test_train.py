@@ -293,7 +293,7 @@ def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path,
     params = train.models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr)
     pairs = train.world.bench_pairs(0.3)
-    wrong = next(i for i, p in enumerate(pairs) if p.d_vlm != p.d_oracle)        # a pair where the two D differ
+    wrong = next(i for i, p in enumerate(pairs) if i and p.d_vlm != p.d_oracle)   # a second pair whose two D differ
     frame0, tasks, descs = train._batch(pairs, [0, wrong])
     prompts = train._batch(pairs, [0, wrong], executor_prompt)[1]
     texts, judged = [], []
@@ -304,9 +304,29 @@ def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path,
                   prompts=prompts)
     G = args.group_size
     field = "d_vlm" if executor_prompt == "instruction" else "d_oracle"
-    assert texts[:2] == [[train.world.instruction_form(getattr(pairs[i], field)) for i in (0, wrong) for _ in range(G)],
-                         [d for d in descs for _ in range(G)]]
+    assert texts[:2] == [[train.world.instruction_form(getattr(pairs[i], field)) for i in (0, wrong)], descs]
     assert judged == [[t for t in tasks for _ in range(G)]]
+
+
+def test_each_distinct_image_and_prompt_is_conditioned_once_and_every_rollout_gets_its_own(tiny_ckpt, tmp_path,
+                                                                                          monkeypatch):
+    """Alg. 1 repeats every (image, T, D) group_size times: train._parts encodes each distinct pair once (a real
+    backend's text encoder and VAE are the costly part) and hands every micro-batch the rows of its own rollouts."""
+    args = _args(tiny_ckpt, tmp_path, group_size=4, micro_batch=3)
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    pairs = train.world.bench_pairs(0.3)
+    frame0, tasks, descs = train._batch(pairs, [0, 1, 2])
+    b = train._group_batch(model, frame0, tasks, descs, args, torch.Generator().manual_seed(0), sde=False)
+    seen, condition = [], model.condition
+    monkeypatch.setattr(model, "condition", lambda f, t: seen.append(list(t)) or condition(f, t))
+    parts = train._parts(model, b, args)
+    assert seen == [tasks, descs]                                   # 3 rows each, not 12
+    assert [p.rows for p in parts] == [slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)]
+    for p in parts:
+        for key, texts in (("c_E", b.prompts), ("c_D", b.descs)):
+            want = condition(b.frame0[p.rows], texts[p.rows])
+            got = getattr(p, key)
+            assert got.keys() == want.keys() and all(torch.equal(got[k], want[k]) for k in want), key
 
 
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
