@@ -486,12 +486,10 @@ def distinct_condition(model, frame0, texts: list[str]) -> tuple[dict, torch.Ten
     prompts a step instead of 96 at 4 x 24), and the text encoder's stacked hidden states are held for those
     only. Every value of c must be a tensor with the batch first (all three backends)."""
     frame0 = np.asarray(frame0)
-    first: dict = {}
-    index = [first.setdefault((f.tobytes(), t), i) for i, (f, t) in enumerate(zip(frame0, texts))]
-    rows = sorted(set(index))
-    position = {r: j for j, r in enumerate(rows)}
-    c = model.condition(frame0[rows], [texts[r] for r in rows])
-    return c, torch.tensor([position[r] for r in index], dtype=torch.long)
+    slot: dict = {}                          # (frame bytes, prompt) -> its row of c, in order of first appearance
+    index = [slot.setdefault((f.tobytes(), t), len(slot)) for f, t in zip(frame0, texts)]
+    rows = [index.index(j) for j in range(len(slot))]     # the first batch row of each
+    return model.condition(frame0[rows], [texts[r] for r in rows]), torch.tensor(index, dtype=torch.long)
 
 
 def condition_rows(c: dict, index: torch.Tensor) -> dict:
