@@ -26,6 +26,8 @@ which a bystander moves the goal to the agent.
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
+  python bench.py --gallery g.png --executor runs/executor_awm.pt   # the first 6 pairs: simulator, Demonstrator,
+                                                   # base and Executor, frame by frame, with the judges' verdicts
 
 A real model on a real-image bench (a WorldTasks JSONL file; the judge a Qwen-VL with the prompts of Figs. 15-17):
   python bench.py --model ltx2 --model_path LTX2 --judge qwen-vl --judge_path QWEN --dataset bench.jsonl --batch 4
@@ -229,6 +231,79 @@ def plot_handoff(res: dict, path: str) -> None:
     ax2.grid(alpha=0.3)
     fig.suptitle(f"{res.get('checkpoint', '')}: {res['n']} bench pairs, noise seed {res['seed']}", fontsize=10)
     save_figure(plt, fig, path)
+
+
+GALLERY_MAX = 12   # --gallery draws at most this many pairs: a picture, not a bench
+
+
+def gallery(base, executor=None, condition: str = "task", n: int = 6, seed: int = 0,
+            error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, path: str | None = None) -> list[dict]:
+    """What a task looks like and what each model does with it: the first n bench pairs (not chosen), each shown
+    as the simulator executing its error-free D, the Demonstrator (the base given the toy VLM's D), the base given
+    T, and the Executor given `condition` if one is given. A generated video is the one `evaluate` judges for that
+    pair (the same seeded noise). Returns one {"label", "videos" (n, F, H, W, 3), "judgments"} per row, each video
+    judged by the toy judges against T; with `path` also draws them (_draw_gallery)."""
+    pairs = world.bench_pairs(error_rate)[:n]
+    frame0 = np.stack([p.frame0 for p in pairs])
+    rows = [{"label": "simulator: the error-free D",
+             "videos": np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in pairs])}]
+    models_ = [("Demonstrator: base given the toy VLM's D", base, "vlm"), ("base given T", base, "task")]
+    if executor is not None:
+        models_.append((f"Executor given {'T' if condition == 'task' else condition}", executor, condition))
+    for label, model, cond in models_:
+        videos = models.generate(model, frame0, prompts_for(pairs, cond), steps=steps, seed=seed)
+        rows.append({"label": label, "videos": videos})
+    for r in rows:
+        r["judgments"] = [reward.judge_all(v, p.task.text) for v, p in zip(r["videos"], pairs)]
+    if path:
+        _draw_gallery(pairs, rows, path, seed)
+    return rows
+
+
+def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
+    """One block per pair, headed by T and the toy VLM's D (and what is wrong with D, if it is); in it one strip
+    of frames per row of `gallery`, its label on the left and the judges' verdicts on the right."""
+    def verdict(j):
+        return "   ".join(f"{name} {'–' if j[k].yes is None else '✓' if j[k].yes else '✗'}"
+                          for k, name in (("task", "task"), ("agent", "agent"), ("consistency", "consistent")))
+
+    def framed(video):   # frames left to right, a 1-px grey line between them and around
+        F, H, W, _ = video.shape
+        img = np.full((H + 2, F * (W + 1) + 1, 3), 128, np.uint8)
+        for f in range(F):
+            img[1:H + 1, 1 + f * (W + 1):1 + f * (W + 1) + W] = video[f]
+        return img
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    cols = 1 if len(pairs) <= 3 else 2
+    lines = -(-len(pairs) // cols)
+    imgs = [[framed(r["videos"][i]) for r in rows] for i in range(len(pairs))]
+    h, w = imgs[0][0].shape[:2]
+    inch = 0.035                                    # inches per pixel of the strips
+    img_w, img_h = w * inch, len(rows) * (h + 3) * inch
+    left, right, head = 2.5, 2.0, 0.55                  # label column, verdict column, title (inches)
+    fw, fh = cols * (left + img_w + right), lines * (img_h + head) + 0.35
+    fig = plt.figure(figsize=(fw, fh))
+    for i, p in enumerate(pairs):
+        x0, y0 = (i % cols) * (left + img_w + right) + left, fh - 0.35 - (i // cols + 1) * (img_h + head)
+        ax = fig.add_axes([x0 / fw, y0 / fh, img_w / fw, img_h / fh])
+        ax.axis("off")
+        ax.imshow(np.concatenate([np.pad(im, ((0, 3), (0, 0), (0, 0)), constant_values=255) for im in imgs[i]]),
+                  interpolation="nearest")
+        for k, r in enumerate(rows):
+            y = k * (h + 3) + h / 2
+            ax.text(-3, y, r["label"], ha="right", va="center", fontsize=8)
+            ax.text(w + 3, y, verdict(r["judgments"][i]), ha="left", va="center", fontsize=8)
+        wrong = f"  (wrong: {p.error})" if p.error else ""
+        ax.set_title(f"bench pair {i}   T = {p.task.text}\nthe toy VLM's D: {p.d_vlm}{wrong}", fontsize=8.5,
+                     loc="left")
+    fig.suptitle(f"The first {len(pairs)} bench pairs (not chosen): frame 0 given, frames 1-"
+                 f"{rows[0]['videos'].shape[1] - 1} generated (noise seed {seed}); the verdicts are the toy judges', "
+                 f"against T", fontsize=9, y=1 - 0.12 / fh)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _spearman(a, b) -> float:
@@ -519,12 +594,18 @@ def main(argv=None):
                    "toy bench")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
-    p.add_argument("--n", type=int, default=200, help="bench pairs to evaluate (1..200)")
+    p.add_argument("--n", type=int, default=None, help="bench pairs to evaluate (1..200; default 200, with --gallery "
+                   f"6, at most {GALLERY_MAX})")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
     p.add_argument("--error_rate", type=float, default=DEFAULT_ERROR_RATE, help="toy VLM's share of wrong descriptions")
     p.add_argument("--steps", type=int, default=10, help="Euler steps")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
+    p.add_argument("--gallery", default=None, metavar="PNG",
+                   help="draw the first --n bench pairs: the simulator's correct video, the Demonstrator (given the toy "
+                        "VLM's D), the base given T [and --executor given --condition], with the judges' verdicts")
+    p.add_argument("--executor", default=None, metavar="CKPT",
+                   help="with --gallery: a toy Executor checkpoint (train.py's executor_*.pt) for the last row")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
     p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR[,RUN_DIR...]", default=None,
                    help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png); several "
@@ -545,9 +626,20 @@ def main(argv=None):
                         "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
     a = p.parse_args(argv)
     a.real = a.model != "toy" or a.judge != "toy" or bool(a.dataset)     # the real path: train.py's loaders
-    if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
-        p.error("--compare, --handoff, --rank_rdistill, --pointing and --relate_probe are toy diagnostics: not with "
-                "--model, --judge or --dataset")
+    if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.gallery):
+        p.error("--compare, --handoff, --rank_rdistill, --pointing, --relate_probe and --gallery are toy diagnostics: "
+                "not with --model, --judge or --dataset")
+    if a.gallery and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
+        p.error("--gallery draws videos of the bench: not with --compare, --handoff, --rank_rdistill, --pointing or "
+                "--relate_probe")
+    if a.executor and not a.gallery:
+        p.error("--executor is --gallery's Executor row; to evaluate a toy checkpoint give it as --checkpoint")
+    if a.gallery and a.condition != "task" and not a.executor:
+        p.error("with --gallery, --condition is the Executor row's prompt: give --executor too")
+    if a.n is None:
+        a.n = 6 if a.gallery else 200
+    if a.gallery and a.n > GALLERY_MAX:
+        p.error(f"--gallery draws at most {GALLERY_MAX} pairs, got --n {a.n}")
     if a.compare:
         try:
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
@@ -590,7 +682,7 @@ def main(argv=None):
         if len(conds) != 2 or bad:
             p.error(f"--handoff wants A,B with A and B among {', '.join(CONDITIONS)}; got {a.handoff!r}")
     torch.set_num_threads(a.threads)
-    judge = pairs = None
+    judge = pairs = executor = None
     try:
         if a.real:       # the loaders train.py uses (train imports this module, so not at the top)
             import train
@@ -606,10 +698,19 @@ def main(argv=None):
                 pairs = train.dataset_pairs(a.dataset, model, a.n, "--n")
         else:
             model, _ = models.load_checkpoint(a.checkpoint)
+            if a.executor:
+                executor = models.load_checkpoint(a.executor)[0].eval()
     except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     model.eval()
+    if a.gallery:
+        rows = gallery(model, executor, a.condition, a.n, a.seed, a.error_rate, a.steps, a.gallery)
+        for r in rows:
+            print(f"{r['label']}: " + ", ".join(f"{k} {sum(bool(j[k].yes) for j in r['judgments'])}/{a.n}"
+                                                  for k in KEYS))
+        print(f"wrote {a.gallery}")
+        return
     if a.real:
         _run_one(a, model, judge, pairs)
         return

@@ -91,6 +91,39 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     r = run("bench.py", "--checkpoint", str(bad), "--n", "2")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
     assert "does not exist" in exit_2(bench.main, ["--checkpoint", tmp_path / "missing.pt", "--n", "2"], capsys)
+    g = tmp_path / "g.png"
+    for argv, msg in ((["--gallery", g, "--n", "13"], "--gallery draws at most 12 pairs"),
+                      (["--executor", bad], "--executor is --gallery's Executor row"),
+                      (["--gallery", g, "--condition", "goal"], "give --executor too"),
+                      (["--gallery", g, "--handoff", "task,vlm"], "--gallery draws videos of the bench: not with"),
+                      (["--gallery", g, "--model", "ltx2-tiny"], "toy diagnostics"),
+                      (["--gallery", g, "--executor", bad], "corrupt")):
+        assert msg in exit_2(bench.main, argv, capsys), argv
+    assert not g.exists()
+
+
+def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
+    import numpy as np
+    from PIL import Image
+    import bench
+    import models
+    model, _ = models.load_checkpoint(tiny_ckpt)
+    rows = bench.gallery(model, model, "oracle", n=3, seed=1, steps=2, path=str(tmp_path / "g.png"))
+    assert [r["label"] for r in rows] == ["simulator: the error-free D", "Demonstrator: base given the toy VLM's D",
+                                          "base given T", "Executor given oracle"]
+    # the first row is the simulator executing the error-free D, which the judges pass
+    assert all(j[k].yes for j in rows[0]["judgments"] for k in bench.KEYS)
+    # every other row is the videos evaluate() generates and judges for those pairs, from the same noise
+    for r, cond in zip(rows[1:], ("vlm", "task", "oracle")):
+        res, videos, _ = bench.evaluate(model, cond, 3, seed=1, steps=2)
+        assert np.array_equal(r["videos"], videos), cond
+        assert sum(bool(j["task"].yes) for j in r["judgments"]) == res["successes"]["task"]
+    assert len(bench.gallery(model, n=3, seed=1, steps=2)) == 3    # no Executor: no Executor row
+    w, h = Image.open(tmp_path / "g.png").size
+    assert w > 500 and h > 300
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--gallery", str(tmp_path / "cli.png"), "--n", "2", "--steps", "2")
+    assert r.returncode == 0 and (tmp_path / "cli.png").stat().st_size > 1000, r.stderr
+    assert "simulator: the error-free D: task 2/2, agent 2/2, consistency 2/2" in r.stdout
 
 
 def test_compare_runs_on_fake_runs(tmp_path):
