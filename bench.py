@@ -61,6 +61,10 @@ DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in
 
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases (train.py's too)
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction")
+PROMPT_NAMES = {"task": "T", "vlm": "the toy VLM's D", "oracle": "the error-free D", "vague": "a vague caption",
+                "empty": "an empty prompt", "goal": "T's words as a pretraining goal caption",
+                "instruction": "the toy VLM's D in the task's form",
+                "oracle_instruction": "the error-free D in the task's form"}   # each condition, as a label says it
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:
@@ -240,16 +244,17 @@ def gallery(base, executor=None, condition: str = "task", n: int = 6, seed: int 
             error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, path: str | None = None) -> list[dict]:
     """What a task looks like and what each model does with it: the first n bench pairs (not chosen), each shown
     as the simulator executing its error-free D, the Demonstrator (the base given the toy VLM's D), the base given
-    T, and the Executor given `condition` if one is given. A generated video is the one `evaluate` judges for that
-    pair (the same seeded noise). Returns one {"label", "videos" (n, F, H, W, 3), "judgments"} per row, each video
-    judged by the toy judges against T; with `path` also draws them (_draw_gallery)."""
+    `condition` (T by default), and the Executor given the same if one is given. A generated video is the one
+    `evaluate` judges for that pair (the same seeded noise). Returns one {"label", "videos" (n, F, H, W, 3),
+    "judgments"} per row, each video judged by the toy judges against T; with `path` also draws them."""
     pairs = world.bench_pairs(error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     rows = [{"label": "simulator: the error-free D",
              "videos": np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in pairs])}]
-    models_ = [("Demonstrator: base given the toy VLM's D", base, "vlm"), ("base given T", base, "task")]
+    models_ = [("Demonstrator: base given the toy VLM's D", base, "vlm"),
+               (f"base given {PROMPT_NAMES[condition]}", base, condition)]
     if executor is not None:
-        models_.append((f"Executor given {'T' if condition == 'task' else condition}", executor, condition))
+        models_.append((f"Executor given {PROMPT_NAMES[condition]}", executor, condition))
     for label, model, cond in models_:
         videos = models.generate(model, frame0, prompts_for(pairs, cond), steps=steps, seed=seed)
         rows.append({"label": label, "videos": videos})
@@ -283,7 +288,8 @@ def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
     h, w = imgs[0][0].shape[:2]
     inch = 0.035                                    # inches per pixel of the strips
     img_w, img_h = w * inch, len(rows) * (h + 3) * inch
-    left, right, head = 2.5, 2.0, 0.55                  # label column, verdict column, title (inches)
+    left = 0.3 + 0.062 * max(len(r["label"]) for r in rows)   # label column (inches, ~ a character at 8 pt)
+    right, head = 2.0, 0.55                                      # verdict column, title
     fw, fh = cols * (left + img_w + right), lines * (img_h + head) + 0.35
     fig = plt.figure(figsize=(fw, fh))
     for i, p in enumerate(pairs):
@@ -603,7 +609,7 @@ def main(argv=None):
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
     p.add_argument("--gallery", default=None, metavar="PNG",
                    help="draw the first --n bench pairs: the simulator's correct video, the Demonstrator (given the toy "
-                        "VLM's D), the base given T [and --executor given --condition], with the judges' verdicts")
+                        "VLM's D), the base [and --executor] given --condition, with the judges' verdicts")
     p.add_argument("--executor", default=None, metavar="CKPT",
                    help="with --gallery: a toy Executor checkpoint (train.py's executor_*.pt) for the last row")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
@@ -634,8 +640,6 @@ def main(argv=None):
                 "--relate_probe")
     if a.executor and not a.gallery:
         p.error("--executor is --gallery's Executor row; to evaluate a toy checkpoint give it as --checkpoint")
-    if a.gallery and a.condition != "task" and not a.executor:
-        p.error("with --gallery, --condition is the Executor row's prompt: give --executor too")
     if a.n is None:
         a.n = 6 if a.gallery else 200
     if a.gallery and a.n > GALLERY_MAX:

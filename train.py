@@ -496,9 +496,7 @@ def pretrain(args: Args) -> dict:
 
 VARIANTS = ("off", "on", "dmd", "sft", "paired")
 # Args.executor_prompt -> how the tables and plots name it; each is a bench.prompts_for condition of that name
-EXECUTOR_PROMPTS = {"task": "T", "instruction": "the toy VLM's D in the task's form",
-                    "oracle_instruction": "the error-free D in the task's form",
-                    "goal": "T's words as a pretraining goal caption"}
+EXECUTOR_PROMPTS = {k: bench.PROMPT_NAMES[k] for k in ("task", "instruction", "oracle_instruction", "goal")}
 
 
 def executor_given(prompt: str) -> str:
