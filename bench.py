@@ -635,9 +635,9 @@ def main(argv=None):
     if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.gallery):
         p.error("--compare, --handoff, --rank_rdistill, --pointing, --relate_probe and --gallery are toy diagnostics: "
                 "not with --model, --judge or --dataset")
-    if a.gallery and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe):
-        p.error("--gallery draws videos of the bench: not with --compare, --handoff, --rank_rdistill, --pointing or "
-                "--relate_probe")
+    if a.gallery and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.png):
+        p.error("--gallery draws videos of the bench: not with --compare, --handoff, --rank_rdistill, --pointing, "
+                "--relate_probe or --png")
     if a.executor and not a.gallery:
         p.error("--executor is --gallery's Executor row; to evaluate a toy checkpoint give it as --checkpoint")
     if a.n is None:
@@ -714,6 +714,9 @@ def main(argv=None):
             print(f"{r['label']}: " + ", ".join(f"{k} {sum(bool(j[k].yes) for j in r['judgments'])}/{a.n}"
                                                   for k in KEYS))
         print(f"wrote {a.gallery}")
+        if a.json:   # each row's verdicts per pair: True, False or None (no judgment)
+            print(json.dumps({"pairs": a.n, "seed": a.seed, "rows": [
+                {"label": r["label"], **{k: [j[k].yes for j in r["judgments"]] for k in KEYS}} for r in rows]}))
         return
     if a.real:
         _run_one(a, model, judge, pairs)

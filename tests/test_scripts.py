@@ -95,6 +95,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     for argv, msg in ((["--gallery", g, "--n", "13"], "--gallery draws at most 12 pairs"),
                       (["--executor", bad], "--executor is --gallery's Executor row"),
                       (["--gallery", g, "--handoff", "task,vlm"], "--gallery draws videos of the bench: not with"),
+                      (["--gallery", g, "--png", tmp_path / "s.png"], "--gallery draws videos of the bench: not with"),
                       (["--gallery", g, "--model", "ltx2-tiny"], "toy diagnostics"),
                       (["--gallery", g, "--executor", bad], "corrupt")):
         assert msg in exit_2(bench.main, argv, capsys), argv
@@ -121,9 +122,13 @@ def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
     assert [r["label"] for r in no_executor][2:] == ["base given T"]    # no Executor row, and the base given T
     w, h = Image.open(tmp_path / "g.png").size
     assert w > 500 and h > 300
-    r = run("bench.py", "--checkpoint", tiny_ckpt, "--gallery", str(tmp_path / "cli.png"), "--n", "2", "--steps", "2")
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--gallery", str(tmp_path / "cli.png"), "--n", "2", "--steps", "2",
+            "--seed", "1", "--json")
     assert r.returncode == 0 and (tmp_path / "cli.png").stat().st_size > 1000, r.stderr
     assert "simulator: the error-free D: task 2/2, agent 2/2, consistency 2/2" in r.stdout
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["rows"][2] == {"label": "base given T", **{k: [j[k].yes for j in no_executor[2]["judgments"][:2]]
+                                                          for k in bench.KEYS}}
 
 
 def test_compare_runs_on_fake_runs(tmp_path):
