@@ -273,15 +273,10 @@ def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
                           for k, name in (("task", "task"), ("agent", "agent"), ("consistency", "consistent")))
 
     def framed(video):   # frames left to right, a 1-px grey line between them and around
-        F, H, W, _ = video.shape
-        img = np.full((H + 2, F * (W + 1) + 1, 3), 128, np.uint8)
-        for f in range(F):
-            img[1:H + 1, 1 + f * (W + 1):1 + f * (W + 1) + W] = video[f]
-        return img
+        img = np.concatenate([np.pad(f, ((1, 1), (1, 0), (0, 0)), constant_values=128) for f in video], axis=1)
+        return np.pad(img, ((0, 0), (0, 1), (0, 0)), constant_values=128)
 
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     cols = 1 if len(pairs) <= 3 else 2
     lines = -(-len(pairs) // cols)
     imgs = [[framed(r["videos"][i]) for r in rows] for i in range(len(pairs))]
@@ -495,11 +490,17 @@ def fmt(xs, digits: int = 3) -> str:
     return f"{m:.{digits}f} ± {sd:.{digits}f}"
 
 
-def figure(panels: int, width: float = 5.2):
-    """A row of `panels` matplotlib axes (Agg backend: no display needed); returns (plt, fig, axes)."""
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed), imported only when a picture is drawn."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    return plt
+
+
+def figure(panels: int, width: float = 5.2):
+    """A row of `panels` matplotlib axes (Agg backend: no display needed); returns (plt, fig, axes)."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, panels, figsize=(width * panels, 3.6), squeeze=False)
     return plt, fig, list(axes[0])
 
