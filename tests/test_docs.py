@@ -49,6 +49,21 @@ def test_ci_runs_the_readmes_test_command():
     assert ci[-1].strip() == command
 
 
+def test_readme_installs_what_ci_installs():
+    """The README's install block: the same torch pin as .ci/run, installed before the requirements, which are
+    installed under a constraints file that holds that pin (else pip may swap in a CUDA build of torch)."""
+    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    block = re.search(r"## Install\n.*?```bash\n(.+?)\n```", readme, re.S).group(1)
+    steps = [line.split("#")[0].split() for line in block.splitlines()]
+    ci = open(os.path.join(ROOT, ".ci", "run"), encoding="utf-8").read()
+    pin = re.search(r"pip install [^\n]*?(torch==[0-9.]+)", ci).group(1)
+    torch_at = next(i for i, s in enumerate(steps) if s[:2] == ["pip", "install"] and pin in s)
+    req_at = next(i for i, s in enumerate(steps) if "requirements.txt" in s)
+    constraints = steps[req_at][steps[req_at].index("-c") + 1]
+    assert torch_at < req_at and steps[req_at][:2] == ["pip", "install"]
+    assert any(s[:3] == ["echo", pin, ">"] and s[3] == constraints for s in steps[:req_at])
+
+
 def cited(doc: str) -> set:
     """Equation numbers a docstring cites: "Eq. 9", "Eqs. 3, 4, 9, 11", "Eqs. 19/21", "Eqs. 21-22" (a range)."""
     nums = set()
