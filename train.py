@@ -227,6 +227,13 @@ class Args:
     """advantages are clipped to [-adv_clip, adv_clip]"""
     inner_epochs: int = 1
     """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
+    executor_ema: float = 0.0
+    """Tab. 3's EMA of the Executor's LoRA weights: ema <- d ema + (1 - d) theta every --executor_ema_every steps,
+    with a constant decay d (the LTX-2 column: 0.96 every step). Evaluations, the GIF and the saved Executor use the
+    averaged weights; rollouts and updates the trained ones, as Flow-GRPO does. 0 = off (the toy's default, and
+    every README result unless it says otherwise)"""
+    executor_ema_every: int = 1
+    """steps between updates of --executor_ema (Tab. 3: 1 for LTX-2, 4 for HunyuanVideo-1.5)"""
     clip_range: float = 0.2
     """PPO clip of the ratio (flow-grpo, awm); binds only when inner_epochs > 1"""
     kl_beta: float = 0.0
@@ -290,7 +297,7 @@ def parse_args(argv=None) -> Args:
     args = Args(**vars(p.parse_args(argv)))
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
                  "sample_steps", "train_pairs", "eval_every", "eval_n", "tasks_per_step", "inner_epochs",
-                 "awm_timesteps", "save_every"):
+                 "awm_timesteps", "save_every", "executor_ema_every"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
@@ -367,6 +374,10 @@ def parse_args(argv=None) -> Args:
         p.error("--p_vague, --p_empty, --p_goal must be >= 0 and sum to at most 1")
     if not 0 <= args.ema < 1:
         p.error("--ema must lie in [0, 1)")
+    if not 0 <= args.executor_ema < 1:
+        p.error("--executor_ema must lie in [0, 1) (0: no EMA)")
+    if args.executor_ema and args.stage != "rl":
+        p.error("--executor_ema averages the rl stage's Executor: it needs --stage rl")
     if args.point_weight < 0 or (args.point_weight and not args.relate):
         p.error("--point_weight must be >= 0 and supervises Relate's heads: it needs --relate")
     if args.point_goal_only and not args.point_weight:
@@ -439,6 +450,33 @@ def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.nda
     return -(logp * valid).sum() / valid.sum().clamp(min=1)
 
 
+def ema_step(ema, params, decay: float) -> None:
+    """An exponential moving average of weights, in place: ema <- decay ema + (1 - decay) theta, tensor by tensor.
+    The base's pretraining (with a warm-up in `decay`) and the Executor's --executor_ema (Tab. 3) use it."""
+    with torch.no_grad():
+        for e, p in zip(ema, params):
+            e.lerp_(p, 1 - decay)
+
+
+@contextlib.contextmanager
+def weights_swapped(params: list, ema: list | None):
+    """Inside the block `params` hold the averaged weights `ema` (an evaluation of the --executor_ema Executor);
+    afterwards the trained weights are back, bit for bit. ema None: nothing changes."""
+    if ema is None:
+        yield
+        return
+    trained = [p.detach().clone() for p in params]
+    with torch.no_grad():
+        for p, e in zip(params, ema):
+            p.copy_(e)
+    try:
+        yield
+    finally:
+        with torch.no_grad():
+            for p, w in zip(params, trained):
+                p.copy_(w)
+
+
 def pretrain(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     model = models.make_model("toy", width=args.width, evidence=args.evidence,
@@ -467,10 +505,7 @@ def pretrain(args: Args) -> dict:
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        with torch.no_grad():  # EMA with warm-up, so early weights do not linger in the average
-            decay = min(args.ema, step / (step + 10))
-            for pe, p in zip(ema.parameters(), model.parameters()):
-                pe.lerp_(p, 1 - decay)
+        ema_step(ema.parameters(), model.parameters(), min(args.ema, step / (step + 10)))  # warm-up: early weights
         run_loss.append(loss.item())
         if step % args.log_every == 0 or step == steps:
             rec = {"step": step, "loss": float(np.mean(run_loss)), "grad_norm": float(gnorm),
@@ -1019,16 +1054,17 @@ _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "sa
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
-               args: Args) -> None:
+               args: Args, ema: list | None = None) -> None:
     """Everything a resumed run needs, written atomically (temp file + rename): the LoRA weights (the base is the
-    --init checkpoint), optimizer state, the Demonstrator's LoRA and optimizer under --alternate, every RNG state,
-    the evaluations so far and the step."""
+    --init checkpoint), optimizer state, the Demonstrator's LoRA and optimizer under --alternate, the Executor's
+    EMA under --executor_ema, every RNG state, the evaluations so far and the step."""
     lora = lambda m: {k: v.detach().clone() for k, v in m.state_dict().items() if "lora_" in k}  # noqa: E731
     state = {"step": step, "lora": lora(model), "opt": opt.state_dict(),
              "demo_lora": lora(demo_net) if demo_net is not None else None,
              "demo_opt": demo_opt.state_dict() if demo_opt is not None else None,
              "rng_numpy": rng.bit_generator.state, "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
-             "py_random": random.getstate(), "evals": evals, "fixed": fixed, "args": dataclasses.asdict(args)}
+             "py_random": random.getstate(), "evals": evals, "fixed": fixed, "args": dataclasses.asdict(args),
+             "ema": ema}
     models.atomic_save(state, path)
 
 
@@ -1154,11 +1190,14 @@ def rl_stage(args: Args) -> dict:
     models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
+    ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the base
     cfg = rl_config(args)
     first, log_mode, evals = 1, "w", []
     if state is not None:      # put every piece back where the interrupted run left it
         model.load_state_dict(state["lora"], strict=False)
         opt.load_state_dict(state["opt"])
+        if ema is not None:
+            ema = [e.clone() for e in state["ema"]]
         if demo_net is not None:
             demo_net.load_state_dict(state["demo_lora"], strict=False)
             demo_opt.load_state_dict(state["demo_opt"])
@@ -1201,6 +1240,9 @@ def rl_stage(args: Args) -> dict:
             last = f"the last good state {state_path} is intact" if os.path.exists(state_path) else \
                 "no state was saved yet (--save_every)"
             raise TrainingFault(f"{e}; stopping -- {last}") from None
+        executor_updates = step - (step // args.alternate if args.alternate else 0)   # Alg. 2's rounds are phi's
+        if ema is not None and not rec.get("demo_round") and executor_updates % args.executor_ema_every == 0:
+            ema_step(ema, params, args.executor_ema)
         rec = {"step": step, **rec, "step_seconds": time.time() - t0}
         if logf:
             logf.write(json.dumps(rec) + "\n")
@@ -1211,7 +1253,8 @@ def rl_stage(args: Args) -> dict:
             f"{rec['step_seconds']:.1f} s | {_eta(loop_start, step - first + 1, args.steps - first + 1)}", flush=True)
         if step % args.eval_every == 0 or step == args.steps:
             if rank0:
-                res = evaluate_executor(model, args)
+                with weights_swapped(params, ema):
+                    res = evaluate_executor(model, args)
                 evals.append({"step": step, **{k: res[k] for k in keys[:4]}})
                 logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
                 say(f"  eval step {step}: task {res['task']:.3f} agent {res['agent']:.3f} consistency "
@@ -1220,20 +1263,22 @@ def rl_stage(args: Args) -> dict:
                 dist.barrier()
         if rank0 and (step % args.save_every == 0 or step == args.steps):
             logf.flush()      # the log on disk holds every step the state has seen
-            save_state(state_path, step, model, opt, demo_net, demo_opt, rng, gen, evals, fixed, args)
+            save_state(state_path, step, model, opt, demo_net, demo_opt, rng, gen, evals, fixed, args, ema)
     if not rank0:
         dist.destroy_process_group()
         return {}
     logf.close()
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
-    if model.backend == "toy":   # LoRA folded in: the base's network and cost, loadable by bench.py
-        merged = models.merge_lora(model)
-        models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-    else:                        # a real model: the LoRA weights alone (the base stays where --model_path says)
-        merged = model
-        models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-    final = evaluate_executor(merged, args)
-    rows = {**fixed, f"{fig5_setting(args)} ({args.trainer}, {given})": {k: final[k] for k in keys}}
+    with weights_swapped(params, ema):   # the Executor that is saved and judged: the average, under --executor_ema
+        if model.backend == "toy":   # LoRA folded in: the base's network and cost, loadable by bench.py
+            merged = models.merge_lora(model)
+            models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+        else:                        # a real model: the LoRA weights alone (the base stays where --model_path says)
+            merged = model
+            models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+        final = evaluate_executor(merged, args)
+    name = f"{fig5_setting(args)} ({args.trainer}, {given}{f', EMA {args.executor_ema}' if ema else ''})"
+    rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
@@ -1247,7 +1292,8 @@ def rl_stage(args: Args) -> dict:
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args)
-    write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
+    with weights_swapped(params, ema):
+        write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     print("\n".join(table))
     print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")

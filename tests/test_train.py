@@ -235,6 +235,9 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--micro_batch", "-1"], "--micro_batch must be >= 0"),
                       (["--stage", "distill", "--micro_batch", "4"], "--micro_batch splits the rl stage's"),
                       (["--grad_checkpoint"], "--grad_checkpoint is for a real model's transformer"),
+                      (["--executor_ema", "1"], "--executor_ema must lie in [0, 1)"),
+                      (["--executor_ema_every", "0"], "--executor_ema_every must be >= 1"),
+                      (["--stage", "distill", "--executor_ema", "0.9"], "--executor_ema averages the rl stage's"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
@@ -327,6 +330,71 @@ def test_each_distinct_image_and_prompt_is_conditioned_once_and_every_rollout_ge
             want = condition(b.frame0[p.rows], texts[p.rows])
             got = getattr(p, key)
             assert got.keys() == want.keys() and all(torch.equal(got[k], want[k]) for k in want), key
+
+
+def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(tiny_ckpt, tmp_path, monkeypatch):
+    """--executor_ema d (Tab. 3): ema <- d ema + (1 - d) theta after every --executor_ema_every-th Executor update
+    (Alg. 2's rounds train phi and are skipped), from the base's LoRA; the evaluations and the saved Executor are the
+    average, and the trained weights -- and so the run's rollouts and updates -- are those of a run without it."""
+    e = [torch.zeros(3)]
+    train.ema_step(e, [torch.ones(3)], 0.75)
+    assert torch.allclose(e[0], torch.full((3,), 0.25))
+    real_save, real_eval = train.save_state, train.evaluate_executor
+
+    def run_with(name, **kw):
+        """Every step's trained LoRA and EMA (as save_state gets them; --save_every 1) and the LoRA each in-run
+        evaluation of the Executor sees, by step."""
+        states, evals = {}, {}
+
+        def save(path, step, model, *a, **k):
+            ema = a[-1] if len(a) == 9 else None
+            states[step] = ([p.detach().clone() for p in train.models.lora_parameters(model)],
+                            None if ema is None else [x.clone() for x in ema])
+            return real_save(path, step, model, *a, **k)
+
+        def evaluate(model, args, *a, **k):
+            lora = train.models.lora_parameters(model)
+            if lora and not a and not k:               # the Executor in the loop (not phi, not the merged one)
+                evals[len(states) + 1] = [p.detach().clone() for p in lora]
+            return real_eval(model, args, *a, **k)
+
+        monkeypatch.setattr(train, "save_state", save)
+        monkeypatch.setattr(train, "evaluate_executor", evaluate)
+        train.rl_stage(_args(tiny_ckpt, tmp_path / name, **kw))
+        return states, evals
+
+    def same(xs, ys):
+        return all(torch.equal(x, y) for x, y in zip(xs, ys))
+
+    plain, _ = run_with("plain", steps=4)
+    avg, evals = run_with("ema", steps=4, executor_ema=0.5, executor_ema_every=2)
+    want = [x.clone() for x in avg[1][1]]         # no update at step 1 (every 2nd): still the LoRA at the start
+    assert len(want) > 0 and plain[4][1] is None
+    assert all(x.abs().max() == 0 for x in want[1::2])                 # lora_B = 0: the average starts at the base
+    for step in range(1, 5):
+        trained, got = avg[step]
+        assert same(trained, plain[step][0]), step                      # training is untouched by the average
+        if step % 2 == 0:
+            train.ema_step(want, trained, 0.5)
+        assert same(got, want), step
+    assert sorted(evals) == [2, 4] and same(evals[2], avg[2][1]) and same(evals[4], avg[4][1])
+    assert not same(want, avg[4][0])                                    # the average is not theta
+    # the saved Executor is the base with the average folded in
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    train.models.add_lora(model, 8, 16.0)
+    with torch.no_grad():
+        for p, w in zip(train.models.lora_parameters(model), want):
+            p.copy_(w)
+    saved = train.models.load_checkpoint(str(tmp_path / "ema" / "executor_awm.pt"))[0].state_dict()
+    merged = train.models.merge_lora(model).state_dict()
+    assert saved.keys() == merged.keys() and all(torch.equal(saved[k], merged[k]) for k in saved)
+    assert "WMSD (awm, T, EMA 0.5)" in json.load(open(tmp_path / "ema" / "rl_summary.json"))["table"]
+    # Alg. 2 (--alternate 2): step 2 is phi's round and leaves the Executor's average where it was
+    alt, _ = run_with("alt", steps=3, executor_ema=0.5, alternate=2)
+    assert same(alt[2][1], alt[1][1]) and not same(alt[3][1], alt[2][1])
+    want = [x.clone() for x in alt[2][1]]
+    train.ema_step(want, alt[3][0], 0.5)
+    assert same(alt[3][1], want)
 
 
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
