@@ -341,7 +341,7 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
     assert torch.allclose(e[0], torch.full((3,), 0.25))
     real_save, real_eval = train.save_state, train.evaluate_executor
 
-    def run_with(name, **kw):
+    def run_with(name, resume=False, **kw):
         """Every step's trained LoRA and EMA (as save_state gets them; --save_every 1) and the LoRA each in-run
         evaluation of the Executor sees, by step."""
         states, evals = {}, {}
@@ -360,7 +360,9 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
 
         monkeypatch.setattr(train, "save_state", save)
         monkeypatch.setattr(train, "evaluate_executor", evaluate)
-        train.rl_stage(_args(tiny_ckpt, tmp_path / name, **kw))
+        args = _args(tiny_ckpt, tmp_path / name, **kw)
+        args.resume = resume
+        train.rl_stage(args)
         return states, evals
 
     def same(xs, ys):
@@ -389,6 +391,10 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
     merged = train.models.merge_lora(model).state_dict()
     assert saved.keys() == merged.keys() and all(torch.equal(saved[k], merged[k]) for k in saved)
     assert "WMSD (awm, T, EMA 0.5)" in json.load(open(tmp_path / "ema" / "rl_summary.json"))["table"]
+    # a resumed run carries the average on: 2 steps, then --resume to 4, ends where the uninterrupted run did
+    run_with("halves", steps=2, executor_ema=0.5, executor_ema_every=2)
+    resumed, _ = run_with("halves", resume=True, steps=4, executor_ema=0.5, executor_ema_every=2)
+    assert same(resumed[4][0], avg[4][0]) and same(resumed[4][1], avg[4][1])
     # Alg. 2 (--alternate 2): step 2 is phi's round and leaves the Executor's average where it was
     alt, _ = run_with("alt", steps=3, executor_ema=0.5, alternate=2)
     assert same(alt[2][1], alt[1][1]) and not same(alt[3][1], alt[2][1])
