@@ -505,7 +505,8 @@ def pretrain(args: Args) -> dict:
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         sched.step()
-        ema_step(ema.parameters(), model.parameters(), min(args.ema, step / (step + 10)))  # warm-up: early weights
+        # EMA with warm-up, so early weights do not linger in the average
+        ema_step(ema.parameters(), model.parameters(), min(args.ema, step / (step + 10)))
         run_loss.append(loss.item())
         if step % args.log_every == 0 or step == steps:
             rec = {"step": step, "loss": float(np.mean(run_loss)), "grad_norm": float(gnorm),
@@ -1196,8 +1197,8 @@ def rl_stage(args: Args) -> dict:
     if state is not None:      # put every piece back where the interrupted run left it
         model.load_state_dict(state["lora"], strict=False)
         opt.load_state_dict(state["opt"])
-        if ema is not None:
-            ema = [e.clone() for e in state["ema"]]
+        if ema is not None:      # the state was loaded to the CPU; the average lives beside its weights
+            ema = [e.to(p.device) for e, p in zip(state["ema"], params)]
         if demo_net is not None:
             demo_net.load_state_dict(state["demo_lora"], strict=False)
             demo_opt.load_state_dict(state["demo_opt"])
@@ -1277,6 +1278,7 @@ def rl_stage(args: Args) -> dict:
             merged = model
             models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
         final = evaluate_executor(merged, args)
+        write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     name = f"{fig5_setting(args)} ({args.trainer}, {given}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
@@ -1292,8 +1294,6 @@ def rl_stage(args: Args) -> dict:
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args)
-    with weights_swapped(params, ema):
-        write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     print("\n".join(table))
     print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")
