@@ -130,6 +130,17 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
     return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
 
 
+def kind_scores(pairs: list, judgments: list[dict]) -> dict:
+    """Task score per kind of toy task (world.Task.kind: move_to, level_with, centre; edge tasks by side), finer
+    than Fig. 7's families: whether the Executor learns the tasks whose motion T's words name ("go to the left
+    edge") and not those it must work out from where two sprites are ("move to the blue circle"). Empty on a
+    real-image bench, whose tasks have no kind."""
+    if not all(hasattr(p.task, "kind") for p in pairs):
+        return {}
+    return family_scores(pairs, judgments, "task",
+                         lambda p: f"edge ({p.task.target})" if p.task.kind == "edge" else p.task.kind)
+
+
 def consistency_faults(judgments: list[dict]) -> dict:
     """How many videos the toy consistency judge failed for each kind of violation (reward.CONSISTENCY_FAULTS; a
     video can have several): what makes the videos implausible. Empty for a VLM judge, which gives no kinds."""
@@ -168,7 +179,8 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
                seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
-               by_vlm_error=vlm_error_scores(pairs, judgments), faults=consistency_faults(judgments))
+               kinds=kind_scores(pairs, judgments), by_vlm_error=vlm_error_scores(pairs, judgments),
+               faults=consistency_faults(judgments))
     return res, videos, pairs
 
 
@@ -453,6 +465,8 @@ def format_table(res: dict, title: str = "") -> str:
             rows.append(f"{label}: {res[name]:.3f} ({res['successes'][name]}/{res['valid'][name]})")
     fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
     rows.append(f"task by family: {fam}")
+    if res["kinds"]:   # not known on a real-image bench
+        rows.append("task by kind: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["kinds"].items()))
     if res["by_vlm_error"]:   # not known on a real-image bench
         rows.append("task by the toy VLM's D: "
                     + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))

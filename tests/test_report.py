@@ -59,6 +59,14 @@ def test_subgroup_scores_for_fig7():
     fpv = [p for p in pairs if p.task.agent == world.FIRST_PERSON]
     assert types.get("first-person view", [0, 0])[1] == len(fpv)
     assert fam["perception"][1] == len(fpv)   # perception tasks are the first-person ones
+    kinds = bench.kind_scores(pairs, judgments)   # finer: each kind, edges by side, the same successes
+    assert set(kinds) <= {"move_to", "level_with", "centre", *(f"edge ({e})" for e in world.EDGES)}
+    assert kinds["centre"] == fam["perception"]
+    edges = [kinds[g] for g in kinds if g.startswith("edge")]
+    pos, level = fam["positioning"], kinds.get("level_with", [0, 0])   # positioning = edges + level_with
+    assert [sum(s for s, _ in edges), sum(v for _, v in edges)] == [pos[0] - level[0], pos[1] - level[1]]
+    left = [i for i, p in enumerate(pairs) if p.task.text.endswith("the left edge")]
+    assert kinds["edge (left)"] == [sum(i % 2 == 0 for i in left), len(left)] and left
 
 
 def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
