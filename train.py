@@ -87,6 +87,10 @@ class Args:
     p_goal: float = 0.0
     """share of goal-directed clips with goal captions ("red square moves to the blue circle"); 0.25 was tried
     and broke D-following (docs/base.md), so it is off"""
+    p_task_words: float = 0.0
+    """share of pretraining captions said in T's words: top/bottom for up/down, first-person view for the camera
+    (world.in_task_words). 0 in the shipped base, which never reads 17 of T's words (docs/given-t.md, "Task by
+    kind")"""
     log_every: int = 50
     """steps between progress lines"""
     width: int = 32
@@ -372,6 +376,8 @@ def parse_args(argv=None) -> Args:
         p.error("--eval_dataset is the rl stage's bench: it needs --stage rl")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
         p.error("--p_vague, --p_empty, --p_goal must be >= 0 and sum to at most 1")
+    if not 0 <= args.p_task_words <= 1:
+        p.error(f"--p_task_words must lie in [0, 1], got {args.p_task_words}")
     if not 0 <= args.ema < 1:
         p.error("--ema must lie in [0, 1)")
     if not 0 <= args.executor_ema < 1:
@@ -494,7 +500,8 @@ def pretrain(args: Args) -> dict:
     logf, start, run_loss, run_point = open(os.path.join(args.run_dir, "pretrain.jsonl"), "w"), time.time(), [], []
     for step in range(1, steps + 1):
         videos, captions, places = world.pretraining_batch(rng, args.pretrain_batch, args.p_vague, args.p_empty,
-                                                           args.p_goal, exclude, places=True)
+                                                           args.p_goal, exclude, places=True,
+                                                           p_task_words=args.p_task_words)
         loss = video_loss(model, videos, captions, args)
         if args.point_weight:
             point = pointing_loss(model, videos[:, 0], captions, places, args.point_goal_only)

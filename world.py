@@ -517,13 +517,26 @@ def goal_clip(scene: Scene, rng: np.random.Generator):
     return None
 
 
+TASK_WORDS = {"up": "top", "down": "bottom", "camera": FIRST_PERSON}   # a caption's word -> the word T uses for it
+
+
+def in_task_words(caption: str) -> str:
+    """A caption with its vertical directions and its camera named as the bench's tasks name them: up/down -> top/
+    bottom (the edge the motion heads for), camera -> first-person view. "red square moves right 1 up 1 for 3 frames
+    then stops" -> "red square moves right 1 top 1 for 3 frames then stops". The same motion, in words of T that the
+    D-style captions never use (docs/given-t.md, "Task by kind"), so a base pretrained on some of these has read them."""
+    return " ".join(TASK_WORDS.get(w, w) for w in caption.split())
+
+
 def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.15, p_empty: float = 0.10,
-                      p_goal: float = 0.0, exclude: set | None = None, places: bool = False):
+                      p_goal: float = 0.0, exclude: set | None = None, places: bool = False,
+                      p_task_words: float = 0.0):
     """World videos for pretraining the base model (Sec. 3): most captioned like D (how things move); with
     probability p_goal a goal-directed clip with a goal caption ("red square moves to the blue circle" -- real
     video captions say such things, and they are why a real base half-understands a short task); with p_vague a
     caption that names the mover but not the motion; with p_empty an empty caption (as video models are trained
-    for classifier-free guidance). Returns (videos uint8 (B, F, H, W, 3), captions list[str]) and, with places,
+    for classifier-free guidance). With probability p_task_words a caption is said in T's words (in_task_words).
+    Returns (videos uint8 (B, F, H, W, 3), captions list[str]) and, with places,
     where the caption's sprites are in frame 0: (B, 2, 2) float (x, y) of the mover it names, and of the sprite
     the motion heads for: a goal caption's target sprite, else the mover itself (no sprite to head for); NaN
     where the caption names none (the camera, an empty caption)."""
@@ -538,6 +551,8 @@ def pretraining_batch(rng: np.random.Generator, batch: int, p_vague: float = 0.1
         u = rng.random()
         captions.append(goal_caption(goal[0]) if goal else "" if u < p_empty else
                         vague_caption(scene, plan) if u < p_empty + p_vague else describe(scene, plan))
+        if p_task_words > 0 and rng.random() < p_task_words:   # no draw when p_task_words = 0
+            captions[-1] = in_task_words(captions[-1])
         named = captions[-1] != "" and plan.mover is not None and plan.mover >= 0 and plan.k > 0
         mover = (scene.sprites[plan.mover].x, scene.sprites[plan.mover].y) if named else (np.nan, np.nan)
         target = {s.name: (s.x, s.y) for s in scene.sprites}.get(goal[0].target) if goal else None

@@ -79,6 +79,24 @@ def test_instruction_form_carries_the_description_s_information(bench):
         world.instruction_form("nothing moves")
 
 
+def test_captions_in_task_words_name_the_same_motion():
+    """--p_task_words: a share of pretraining captions says up/down and the camera as T does (top/bottom, first-person
+    view); the rest of each caption is as before."""
+    import models
+    assert world.in_task_words("red square moves right 1 up 1 for 3 frames then stops") == \
+        "red square moves right 1 top 1 for 3 frames then stops"
+    assert world.in_task_words("camera pans down 1 for 2 frames then stops") == \
+        "first-person view pans bottom 1 for 2 frames then stops"
+    tok = models.Tokenizer(world.VOCAB)
+    plain = world.pretraining_batch(np.random.default_rng(3), 64)                  # the default share: 0
+    said = lambda caps, ws: sum(any(w in tok.words(c) for w in ws) for c in caps)  # noqa: E731
+    assert said(plain[1], ("top", "bottom", "first-person")) == 0 < said(plain[1], ("up", "down", "camera"))
+    _, every = world.pretraining_batch(np.random.default_rng(3), 64, p_task_words=1.0)
+    assert said(every, ("up", "down", "camera")) == 0 < said(every, ("top", "bottom", "first-person"))
+    _, half = world.pretraining_batch(np.random.default_rng(3), 200, p_task_words=0.5)
+    assert said(half, ("up", "down", "camera")) > 0 and said(half, ("top", "bottom", "first-person")) > 0
+
+
 def test_toy_vlm_error_rate_and_oracle(bench):
     rate = np.mean([p.error != "" for p in bench])
     assert 0.2 < rate < 0.4
