@@ -132,9 +132,8 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
 
 def kind_scores(pairs: list, judgments: list[dict]) -> dict:
     """Task score per kind of toy task (world.Task.kind: move_to, level_with, centre; edge tasks by side), finer
-    than Fig. 7's families: whether the Executor learns the tasks whose motion T's words name ("go to the left
-    edge") and not those it must work out from where two sprites are ("move to the blue circle"). Empty on a
-    real-image bench, whose tasks have no kind."""
+    than Fig. 7's families: it tells the tasks whose direction T's words name ("go to the left edge") from those
+    that need where a sprite is ("move to the blue circle"). Empty on a real-image bench, whose tasks have no kind."""
     if not all(hasattr(p.task, "kind") for p in pairs):
         return {}
     return family_scores(pairs, judgments, "task",

@@ -523,8 +523,8 @@ TASK_WORDS = {"up": "top", "down": "bottom", "camera": FIRST_PERSON}   # a capti
 def in_task_words(caption: str) -> str:
     """A caption with its vertical directions and its camera named as the bench's tasks name them: up/down -> top/
     bottom (the edge the motion heads for), camera -> first-person view. "red square moves right 1 up 1 for 3 frames
-    then stops" -> "red square moves right 1 top 1 for 3 frames then stops". The same motion, in words of T that the
-    D-style captions never use (docs/given-t.md, "Task by kind"), so a base pretrained on some of these has read them."""
+    then stops" -> "red square moves right 1 top 1 for 3 frames then stops". The same motion, in words of T that
+    D-style captions never use (docs/given-t.md, "Task by kind"): a base pretrained on some of these has read them."""
     return " ".join(TASK_WORDS.get(w, w) for w in caption.split())
 
 
