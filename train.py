@@ -89,7 +89,7 @@ class Args:
     and broke D-following (docs/base.md), so it is off"""
     p_task_words: float = 0.0
     """share of pretraining captions said in T's words: top/bottom for up/down, first-person view for the camera
-    (world.in_task_words). 0 in the shipped base, which never reads 17 of T's words (docs/given-t.md, "Task by
+    (world.in_task_words). 0 in the shipped base, which never reads 16 of T's 29 words (docs/given-t.md, "Task by
     kind")"""
     log_every: int = 50
     """steps between progress lines"""
