@@ -716,6 +716,21 @@ def _require(*packages: str) -> None:
                           f"-r requirements-real.txt")
 
 
+def _word_tokenizer(words: list[str]):
+    """A word-level tokenizer over `words` with Gemma's special tokens, built in-process (nothing can be
+    downloaded): the text path of LTX2Video.tiny and LTX2Video.random."""
+    from tokenizers import Tokenizer as HFTokenizer
+    from tokenizers import models as tok_models
+    from tokenizers import pre_tokenizers
+    from transformers import PreTrainedTokenizerFast
+    specials = ["<pad>", "<eos>", "<bos>", "<unk>"]
+    vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
+    tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
+    tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
+    return PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>", bos_token="<bos>",
+                                   unk_token="<unk>")
+
+
 def _image_batch(frame0, height: int, width: int) -> torch.Tensor:
     """First frames (B, H, W, 3) uint8 -> (B, 3, height, width) in [-1, 1], bilinear: a real backend's VAE input."""
     img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)
@@ -771,16 +786,17 @@ class LTX2Video(nn.Module):
         for m in (vae, text_encoder, connectors):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself (its compression ratios vary by config)
-            z = vae.encode(torch.zeros(1, 3, frames, height, width)).latent_dist.mode()
+            z = vae.encode(torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)).latent_dist.mode()
         self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
 
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
     def from_pretrained(cls, path: str, frames: int = 121, height: int = 384, width: int = 576, dtype=torch.bfloat16,
-                        max_sequence_length: int = 1024):
+                        max_sequence_length: int = 1024, device="cpu"):
         """Load the components from a local diffusers LTX-2 directory (e.g. a snapshot of Lightricks/LTX-2);
         Table 3's training resolution and frame count are the defaults, and diffusers' LTX-2 pipelines' prompt
-        length (1024 tokens: a step-by-step description D is long)."""
+        length (1024 tokens: a step-by-step description D is long). Each component goes to `device` as it is
+        loaded, so the latent-grid probe of __init__ runs there."""
         _require("diffusers", "transformers", "peft")
         if not os.path.isdir(path):
             raise FileNotFoundError(f"LTX-2 weights not found at {path!r} (a local diffusers directory is needed; "
@@ -788,33 +804,26 @@ class LTX2Video(nn.Module):
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
         from transformers import AutoModelForCausalLM, AutoTokenizer
-        load = dict(torch_dtype=dtype)
-        return cls(LTX2VideoTransformer3DModel.from_pretrained(path, subfolder="transformer", **load),
-                   AutoencoderKLLTX2Video.from_pretrained(path, subfolder="vae", **load),
-                   AutoModelForCausalLM.from_pretrained(path, subfolder="text_encoder", **load),
-                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
-                   LTX2TextConnectors.from_pretrained(path, subfolder="connectors", **load), frames, height, width,
+        def load(kind, sub):
+            return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
+        return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae"),
+                   load(AutoModelForCausalLM, "text_encoder"), AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   load(LTX2TextConnectors, "connectors"), frames, height, width,
                    max_sequence_length=max_sequence_length)
 
     @classmethod
-    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0):
+    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0,
+             dtype=torch.float32):
         """A random-weight LTX-2 of the real classes, small enough for CPU tests (configs after diffusers' own
-        tests; a word-level tokenizer built in-process over `words`, since nothing can be downloaded)."""
+        tests; a word-level tokenizer built in-process over `words`, since nothing can be downloaded). `dtype`:
+        the components' dtype (bfloat16 is how from_pretrained loads the real one)."""
         _require("diffusers", "transformers", "tokenizers")
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
-        from tokenizers import Tokenizer as HFTokenizer
-        from tokenizers import models as tok_models
-        from tokenizers import pre_tokenizers
-        from transformers import Gemma3ForCausalLM, Gemma3TextConfig, PreTrainedTokenizerFast
-        specials = ["<pad>", "<eos>", "<bos>", "<unk>"]
-        vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
-        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
-        tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
-        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>",
-                                            bos_token="<bos>", unk_token="<unk>")
+        from transformers import Gemma3ForCausalLM, Gemma3TextConfig
+        tokenizer = _word_tokenizer(words)
         torch.manual_seed(seed)
-        text = Gemma3ForCausalLM(Gemma3TextConfig(vocab_size=len(vocab), hidden_size=32, intermediate_size=64,
+        text = Gemma3ForCausalLM(Gemma3TextConfig(vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64,
                                                   num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1,
                                                   head_dim=16, max_position_embeddings=64, sliding_window=16))
         connectors = LTX2TextConnectors(
@@ -835,7 +844,43 @@ class LTX2Video(nn.Module):
             decoder_spatio_temporal_scaling=(True,), decoder_inject_noise=(False, False), downsample_type=("spatial",),
             upsample_residual=(False,), upsample_factor=(1,), timestep_conditioning=False, patch_size=1,
             patch_size_t=1, encoder_causal=True, decoder_causal=False)
-        return cls(transformer, vae, text, tokenizer, connectors, frames, height, width, max_sequence_length=16)
+        return cls(transformer.to(dtype), vae.to(dtype), text.to(dtype), tokenizer, connectors.to(dtype), frames,
+                   height, width, max_sequence_length=16)
+
+    @classmethod
+    def random(cls, words: list[str], frames: int = 121, height: int = 384, width: int = 576, device="cuda",
+               dtype=torch.bfloat16, seed: int = 0, layers: int = 48, text_layers: int = 48):
+        """LTX-2 at its real size with random weights (train.py --model ltx2-random): what a step costs in seconds
+        and memory on a GPU, without the weights, which cannot be downloaded here. Nothing it generates means
+        anything. The sizes: diffusers' LTX2VideoTransformer3DModel, LTX2TextConnectors and AutoencoderKLLTX2Video
+        at their default configs, which are LTX-2-19B's (48 layers of 32 x 128 heads, caption width 3840; the
+        transformer has 18.9B parameters with its audio stream, the connectors 1.4B, the VAE 1.2B; the VAE
+        compresses 32x in space and 8x in time, as its conversion script states); the text encoder is Gemma-3-12B's
+        text model (48 layers of width 3840, 16 query and 8 key-value heads of 256, MLP 15360, vocabulary 262208;
+        11.8B parameters), whose 49 hidden states the connectors read. The tokenizer is word-level over `words`
+        (Gemma's cannot be downloaded), so token counts differ from Gemma's; prompts are padded to 1024 all the
+        same. Built directly on `device` in `dtype` (no float32 copy on the CPU); `layers` / `text_layers` shrink
+        the two stacks for a quick check of the code path."""
+        _require("diffusers", "transformers", "tokenizers")
+        from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
+        from diffusers.pipelines.ltx2 import LTX2TextConnectors
+        from transformers import Gemma3ForCausalLM, Gemma3TextConfig
+        tokenizer = _word_tokenizer(words)
+        torch.manual_seed(seed)
+        default_dtype = torch.get_default_dtype()
+        torch.set_default_dtype(dtype)
+        try:
+            with torch.device(device):
+                text = Gemma3ForCausalLM(Gemma3TextConfig(
+                    vocab_size=262208, hidden_size=3840, intermediate_size=15360, num_hidden_layers=text_layers,
+                    num_attention_heads=16, num_key_value_heads=8, head_dim=256, query_pre_attn_scalar=256,
+                    sliding_window=1024, max_position_embeddings=131072))
+                connectors = LTX2TextConnectors(text_proj_in_factor=text_layers + 1)
+                transformer = LTX2VideoTransformer3DModel(num_layers=layers)
+                vae = AutoencoderKLLTX2Video(spatial_compression_ratio=32, temporal_compression_ratio=8)
+        finally:
+            torch.set_default_dtype(default_dtype)
+        return cls(transformer, vae, text, tokenizer, connectors, frames, height, width)
 
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
     def add_lora(self, rank: int, alpha: float, target: str = LTX2_VIDEO_ATTENTION) -> list[str]:
@@ -858,14 +903,16 @@ class LTX2Video(nn.Module):
         """c = (first frame (B, H, W, 3) uint8, prompts) -> {image latent (B, C, 1, h, w), the connectors' video and
         audio text embeddings, their mask}. The text path mirrors diffusers' LTX-2 pipeline: Gemma hidden states of
         every layer, stacked, left-padded, through the text connectors. A prompt longer than max_sequence_length
-        is an error (check_prompts), not cut: a D cut short would be another D."""
+        is an error (check_prompts), not cut: a D cut short would be another D. Only the hidden states are read, so
+        the language-model head runs on one position (logits_to_keep=1), not on all 1024: at Gemma-3-12B's
+        vocabulary of 262208 that head is 2 TFLOPs and a 0.5 GB logit tensor per prompt, for nothing."""
         self.check_prompts(texts)
         dev = next(self.transformer.parameters()).device
         self.tokenizer.padding_side = "left"
         ids = self.tokenizer([t.strip() for t in texts], padding="max_length", max_length=self.max_len,
                              truncation=True, add_special_tokens=True, return_tensors="pt").to(dev)
         hs = self.text_encoder(input_ids=ids.input_ids, attention_mask=ids.attention_mask,
-                               output_hidden_states=True).hidden_states
+                               output_hidden_states=True, logits_to_keep=1).hidden_states
         emb = torch.stack(hs, dim=-1).flatten(2, 3)
         video, audio, mask = self.connectors(emb.to(self.connectors.dtype), ids.attention_mask, padding_side="left")
         return {"image_latent": self._image_latent(frame0), "text": video, "audio_text": audio, "mask": mask}
@@ -951,15 +998,16 @@ class HunyuanVideo15(nn.Module):
         for m in (vae, text_encoder, text_encoder_2, image_encoder):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself
-            z = vae.encode(torch.zeros(1, 3, frames, height, width)).latent_dist.mode()
+            z = vae.encode(torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)).latent_dist.mode()
         self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
 
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
-    def from_pretrained(cls, path: str, frames: int = 121, height: int = 480, width: int = 848, dtype=torch.bfloat16):
+    def from_pretrained(cls, path: str, frames: int = 121, height: int = 480, width: int = 848, dtype=torch.bfloat16,
+                        device="cpu"):
         """Load the components from a local diffusers HunyuanVideo-1.5 image-to-video directory (e.g. a snapshot of
         hunyuanvideo-community/HunyuanVideo-1.5-Diffusers-480p_i2v); Table 3's training resolution and frame count
-        are the defaults."""
+        are the defaults. Each component goes to `device` as it is loaded, so the latent-grid probe runs there."""
         _require("diffusers", "transformers", "peft")
         if not os.path.isdir(path):
             raise FileNotFoundError(f"HunyuanVideo-1.5 weights not found at {path!r} (a local diffusers directory is "
@@ -967,20 +1015,20 @@ class HunyuanVideo15(nn.Module):
         from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
         from transformers import (AutoTokenizer, ByT5Tokenizer, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
                                   SiglipVisionModel, T5EncoderModel)
-        load = dict(torch_dtype=dtype)
-        return cls(HunyuanVideo15Transformer3DModel.from_pretrained(path, subfolder="transformer", **load),
-                   AutoencoderKLHunyuanVideo15.from_pretrained(path, subfolder="vae", **load),
-                   Qwen2_5_VLTextModel.from_pretrained(path, subfolder="text_encoder", **load),
-                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
-                   T5EncoderModel.from_pretrained(path, subfolder="text_encoder_2", **load),
-                   ByT5Tokenizer.from_pretrained(path, subfolder="tokenizer_2"),
-                   SiglipVisionModel.from_pretrained(path, subfolder="image_encoder", **load),
+        def load(kind, sub):
+            return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
+        return cls(load(HunyuanVideo15Transformer3DModel, "transformer"), load(AutoencoderKLHunyuanVideo15, "vae"),
+                   load(Qwen2_5_VLTextModel, "text_encoder"), AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   load(T5EncoderModel, "text_encoder_2"), ByT5Tokenizer.from_pretrained(path, subfolder="tokenizer_2"),
+                   load(SiglipVisionModel, "image_encoder"),
                    SiglipImageProcessorPil.from_pretrained(path, subfolder="feature_extractor"), frames, height, width)
 
     @classmethod
-    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0):
+    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0,
+             dtype=torch.float32):
         """A random-weight HunyuanVideo-1.5 of the real classes, small enough for CPU tests (sizes after diffusers'
-        own tests; a word-level tokenizer whose chat template keeps only the user turn, so nothing is cropped)."""
+        own tests; a word-level tokenizer whose chat template keeps only the user turn, so nothing is cropped).
+        `dtype`: the components' dtype (bfloat16 is how from_pretrained loads the real one)."""
         _require("diffusers", "transformers", "tokenizers")
         from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
         from tokenizers import Tokenizer as HFTokenizer
@@ -1013,7 +1061,8 @@ class HunyuanVideo15(nn.Module):
             in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(16, 16), layers_per_block=1,
             spatial_compression_ratio=4, temporal_compression_ratio=2, downsample_match_channel=False,
             upsample_match_channel=False)
-        return cls(transformer, vae, text, tokenizer, byt5, ByT5Tokenizer(), siglip,
+        return cls(transformer.to(dtype), vae.to(dtype), text.to(dtype), tokenizer, byt5.to(dtype), ByT5Tokenizer(),
+                   siglip.to(dtype),
                    SiglipImageProcessorPil(size={"height": 32, "width": 32}), frames, height, width,
                    max_sequence_length=16, crop_start=0, byt5_max_length=16)
 

@@ -154,6 +154,39 @@ def test_lora_weights_train_in_float32_on_a_bfloat16_base(cls):
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_a_model_held_in_bfloat16_builds_samples_and_decodes(cls):
+    """from_pretrained loads every component in bfloat16. Building such a model used to fail in __init__: the probe
+    that reads the latent grid off the VAE sent it float32 zeros on the CPU ("Input type (float) and bias type
+    (c10::BFloat16) should be the same"). The probe now uses the VAE's own device and dtype."""
+    m = cls.tiny(world.VOCAB + ["[", "]:"], dtype=torch.bfloat16)
+    assert {p.dtype for p in m.parameters()} == {torch.bfloat16}
+    pairs = world.make_pairs(2, seed=0, error_rate=0.0)
+    f0 = np.stack([p.frame0 for p in pairs])
+    x = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    v = m(x, torch.tensor([0.3, 0.6]), m.condition(f0, [p.task.text for p in pairs]))
+    assert v.shape == x.shape and v.dtype == torch.float32 and torch.isfinite(v).all()
+    video = m.decode(x, f0)
+    assert video.dtype == np.uint8 and video.shape[0] == 2 and video.shape[2:] == (m.height, m.width, 3)
+
+
+def test_ltx2_random_has_ltx2_19bs_sizes():
+    """--model ltx2-random (a real-size step's seconds and memory on a GPU) builds LTX-2-19B's components: counted
+    on the meta device, where nothing is allocated. The transformer 18.9B parameters (video and audio streams),
+    Gemma-3-12B's text model 11.8B, the connectors 1.4B, the VAE 1.2B; at Table 3's 121 frames of 384 x 576 the
+    state is 15 latent frames of 12 x 18 after the first (the VAE: 8x in time, 32x in space, 128 channels)."""
+    m = models.LTX2Video.random(world.VOCAB + ["[", "]:"], device="meta")
+    count = {k: sum(p.numel() for p in getattr(m, k).parameters()) / 1e9
+             for k in ("transformer", "text_encoder", "connectors", "vae")}
+    assert count == pytest.approx({"transformer": 18.88, "text_encoder": 11.77, "connectors": 1.43, "vae": 1.22},
+                                  abs=0.01)
+    assert m.latent_shape() == (128, 15, 12, 18)
+    assert {p.dtype for p in m.parameters()} == {torch.bfloat16} and m.max_len == 1024
+    assert torch.get_default_dtype() == torch.float32          # the build's bf16 default does not leak
+    r = run("train.py", "--model", "ltx2-random", "--steps", "1")
+    assert r.returncode == 2 and "needs a CUDA GPU" in r.stderr    # this machine has none
+
+
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
 def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
     """train.py --grad_checkpoint: the transformer's blocks run again in the backward pass instead of keeping their
     activations, and the LoRA gradients of Eq. 12's anchor are the same."""
