@@ -50,6 +50,7 @@ import rl
 import world
 
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases
+MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")
 
 
 @dataclass
@@ -181,7 +182,8 @@ class Args:
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
-    ltx2-tiny, hunyuan15-tiny (random-weight models of the real classes, for checking the real path on a CPU)"""
+    ltx2-tiny, hunyuan15-tiny (random-weight models of the real classes, for checking the real path on a CPU) |
+    ltx2-random (LTX-2 at its real size with random weights, on a GPU: a step's seconds and memory, nothing more)"""
     model_path: str = ""
     """--model ltx2 / hunyuan15: a local diffusers directory of the model (transformer/, vae/, text_encoder/, ...)"""
     dataset: str = ""
@@ -313,7 +315,7 @@ def parse_args(argv=None) -> Args:
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
                           ("task_reward", TOY_TASK_REWARDS),
-                          ("model", ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS))),
+                          ("model", MODEL_CHOICES),
                           ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
@@ -330,6 +332,9 @@ def parse_args(argv=None) -> Args:
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
+    if args.model == "ltx2-random" and not torch.cuda.is_available():
+        p.error("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
+                "encoder): it needs a CUDA GPU, and there is none here")
     if args.model != "toy" and args.lora_convs:
         p.error("--lora_convs is for the toy U-Net; a real backend's LoRA covers its video attention (Table 3)")
     if args.judge != "toy" and args.task_reward != "end_state":
@@ -712,7 +717,8 @@ def plot_fig4_left(results: dict, path: str) -> None:
 
 def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
     """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (or its
-    --executor_prompt; same noise)."""
+    --executor_prompt; same noise). A real model's videos are thinned to 24 frames and rows of at most 128 px: at
+    LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, README)."""
     from PIL import Image
     pairs = (world.bench_pairs(args.error_rate) if BENCH is None else BENCH)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
@@ -722,8 +728,11 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
     exe = models.generate(model, frame0, bench.prompts_for(pairs, args.executor_prompt), args.sample_steps, seed=0,
                           batch=batch)
+    F, H = demo.shape[1:3]   # a real model's 121 frames of 384 px: 24 frames evenly spaced, rows of at most 128 px
+    keep, k = np.linspace(0, F - 1, min(F, 24)).round().astype(int), -(-H // 128)
+    demo, exe = demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k]          # the toy's 6 frames of 16 px: unchanged
     sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
-    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3): F of the model
+    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
     imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
@@ -752,8 +761,9 @@ def make_judge(args: Args):
     if args.judge == "toy":
         return None
     if args.judge == "qwen-vl-tiny":
-        return reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
-    judge = reward.VLMJudge.from_pretrained(args.judge_path)
+        judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    else:
+        judge = reward.VLMJudge.from_pretrained(args.judge_path)
     if torch.cuda.is_available():     # beside the video model, on this process's GPU (torchrun: its LOCAL_RANK)
         judge.model.to("cuda")
     return judge
@@ -996,7 +1006,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     local = judge_rollouts(videos, tasks, args.task_reward)
     local["distill"] = (torch.cat([distill.distill_reward(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, student_v=p.vs,
                                                           teacher=teacher, motion_weight=args.distill_motion_weight)
-                                   for p in parts]) if args.lambda_distill > 0 else torch.zeros(n))
+                                   for p in parts]).cpu() if args.lambda_distill > 0 else torch.zeros(n))
+    # every reward lives on the CPU beside the judges' (advantages are computed there, then sent to the device)
     rewards = {k: _gather(v) for k, v in local.items()}
     for k in ("task", "consistency"):
         _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
@@ -1100,11 +1111,14 @@ def load_base(args: Args):
     """The base video model named by --model (the Executor and, adapters off, the Demonstrator)."""
     if args.model == "toy":
         return models.load_checkpoint(args.init or None)[0]
+    cuda = torch.cuda.is_available()   # a real model, or its tiny or random stand-in, runs on the GPU when there is one
     if args.model.endswith("-tiny"):
         model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+        model = model.to("cuda") if cuda else model
+    elif args.model == "ltx2-random":   # built on the GPU directly, in bf16
+        model = models.LTX2Video.random(world.VOCAB + ["[", "]:"], seed=args.seed)
     else:
-        model = REAL_MODELS[args.model].from_pretrained(args.model_path)
-        model = model.to("cuda") if torch.cuda.is_available() else model
+        model = REAL_MODELS[args.model].from_pretrained(args.model_path, device="cuda" if cuda else "cpu")
     if args.grad_checkpoint:       # recomputed in the backward pass: only with gradients on, so sampling is unchanged
         model.transformer.enable_gradient_checkpointing()
     return model
@@ -1234,6 +1248,8 @@ def rl_stage(args: Args) -> dict:
     loop_start = time.time()
     for step in range(first, args.steps + 1):
         t0 = time.time()
+        if torch.cuda.is_available():
+            torch.cuda.reset_peak_memory_stats()
         idx = rng.choice(len(pairs), args.tasks_per_step, replace=False)
         frame0, tasks, descs = _batch(pairs, idx)
         prompts = None if args.executor_prompt == "task" else bench.prompts_for([pairs[i] for i in idx],
@@ -1252,13 +1268,18 @@ def rl_stage(args: Args) -> dict:
         if ema is not None and not rec.get("demo_round") and executor_updates % args.executor_ema_every == 0:
             ema_step(ema, params, args.executor_ema)
         rec = {"step": step, **rec, "step_seconds": time.time() - t0}
+        if torch.cuda.is_available():   # the step's high-water mark of tensors on this process's GPU, GiB
+            rec["gpu_peak_gb"] = torch.cuda.max_memory_allocated() / 2 ** 30
         if logf:
             logf.write(json.dumps(rec) + "\n")
             logf.flush()
         what = ("Demonstrator round | " if rec.get("demo_round") else "") + " ".join(
             f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec)
         say(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
-            f"{rec['step_seconds']:.1f} s | {_eta(loop_start, step - first + 1, args.steps - first + 1)}", flush=True)
+            f"{rec['step_seconds']:.1f} s" + (f" ({rec['sample_s']:.1f} sampling, {rec['reward_s']:.1f} rewards, "
+                                               f"{rec['update_s']:.1f} update)" if "reward_s" in rec else "")
+            + (f" | GPU peak {rec['gpu_peak_gb']:.1f} GiB" if "gpu_peak_gb" in rec else "")
+            + f" | {_eta(loop_start, step - first + 1, args.steps - first + 1)}", flush=True)
         if step % args.eval_every == 0 or step == args.steps:
             if rank0:
                 with weights_swapped(params, ema):
