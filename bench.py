@@ -600,9 +600,11 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
-    p.add_argument("--model", default="toy", choices=("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS)),
+    p.add_argument("--model", default="toy",
+                   choices=("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random"),
                    help="toy (--checkpoint) | ltx2 | hunyuan15 (a local diffusers directory, --model_path) | "
-                        "ltx2-tiny | hunyuan15-tiny (random weights, for checks)")
+                        "ltx2-tiny | hunyuan15-tiny (random weights, for checks) | ltx2-random (LTX-2's real sizes, "
+                        "random weights, on a GPU: the seconds a video)")
     p.add_argument("--model_path", default="", help="--model ltx2 / hunyuan15: the local diffusers directory")
     p.add_argument("--lora", default=None, help="a real model's Executor: the LoRA file train.py wrote "
                    "(<run_dir>/executor_awm.pt); without it the base itself (given D: the Demonstrator)")
@@ -675,6 +677,9 @@ def main(argv=None):
         p.error(f"--batch must be >= 1, got {a.batch}")
     if a.model in REAL_MODELS and not a.model_path:
         p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
+    if a.model == "ltx2-random" and not torch.cuda.is_available():
+        p.error("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
+                "encoder): it needs a CUDA GPU, and there is none here")
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if a.lora and a.model == "toy":
