@@ -394,7 +394,8 @@ class VLMJudge:
             with torch.no_grad():
                 o = self.model(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
                                pixel_values=img["pixel_values"].to(dev, self.model.dtype),
-                               image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev))
+                               image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),
+                               logits_to_keep=1)   # the next token's logits only: a video is thousands of tokens
             out.append(o.logits[:, -1].float().cpu().numpy())
         return np.concatenate(out)
 

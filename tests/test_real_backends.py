@@ -384,6 +384,10 @@ def test_tiny_vlm_judge_batches_like_single_items():
     batched = judge.logits(videos, prompts)
     for i in range(3):
         assert np.allclose(batched[i], judge.logits(videos[i:i + 1], prompts[i:i + 1])[0], atol=1e-4)
+    forward = judge.model.forward      # the head on every position, as before logits_to_keep=1: the same last logits
+    judge.model.forward = lambda *a, logits_to_keep=0, **k: forward(*a, **k)
+    assert np.allclose(batched, judge.logits(videos, prompts), atol=1e-5)
+    del judge.model.forward
     out = judge.task_reward(videos, tasks)
     assert len(out) == 3 and all(isinstance(j, reward.Judgment) for j in out)
     assert len(judge.bench(videos[:1], tasks[:1])[0]) == 3
