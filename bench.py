@@ -601,7 +601,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
     p.add_argument("--model", default="toy",
-                   choices=("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random"),
+                   choices=models.MODEL_CHOICES,
                    help="toy (--checkpoint) | ltx2 | hunyuan15 (a local diffusers directory, --model_path) | "
                         "ltx2-tiny | hunyuan15-tiny (random weights, for checks) | ltx2-random (LTX-2's real sizes, "
                         "random weights, on a GPU: the seconds a video)")

@@ -786,7 +786,8 @@ class LTX2Video(nn.Module):
         for m in (vae, text_encoder, connectors):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself (its compression ratios vary by config)
-            z = vae.encode(torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)).latent_dist.mode()
+            zeros = torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)
+            z = vae.encode(zeros).latent_dist.mode()
         self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
 
     # -- construction ------------------------------------------------------------------------------------------
@@ -807,7 +808,8 @@ class LTX2Video(nn.Module):
         def load(kind, sub):
             return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
         return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae"),
-                   load(AutoModelForCausalLM, "text_encoder"), AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   load(AutoModelForCausalLM, "text_encoder"),
+                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
                    load(LTX2TextConnectors, "connectors"), frames, height, width,
                    max_sequence_length=max_sequence_length)
 
@@ -998,7 +1000,8 @@ class HunyuanVideo15(nn.Module):
         for m in (vae, text_encoder, text_encoder_2, image_encoder):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself
-            z = vae.encode(torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)).latent_dist.mode()
+            zeros = torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)
+            z = vae.encode(zeros).latent_dist.mode()
         self._latent = tuple(z.shape[1:])          # (C, F_lat, h, w)
 
     # -- construction ------------------------------------------------------------------------------------------
@@ -1018,7 +1021,8 @@ class HunyuanVideo15(nn.Module):
         def load(kind, sub):
             return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
         return cls(load(HunyuanVideo15Transformer3DModel, "transformer"), load(AutoencoderKLHunyuanVideo15, "vae"),
-                   load(Qwen2_5_VLTextModel, "text_encoder"), AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
+                   load(Qwen2_5_VLTextModel, "text_encoder"),
+                   AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
                    load(T5EncoderModel, "text_encoder_2"), ByT5Tokenizer.from_pretrained(path, subfolder="tokenizer_2"),
                    load(SiglipVisionModel, "image_encoder"),
                    SiglipImageProcessorPil.from_pretrained(path, subfolder="feature_extractor"), frames, height, width)
@@ -1146,3 +1150,5 @@ class HunyuanVideo15(nn.Module):
 
 
 REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of train.py and bench.py: the paper's bases
+# --model of train.py and bench.py: the toy, the two bases, their tiny random-weight models, LTX-2 at size (random)
+MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")

@@ -50,7 +50,6 @@ import rl
 import world
 
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases
-MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")
 
 
 @dataclass
@@ -315,7 +314,7 @@ def parse_args(argv=None) -> Args:
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
                           ("task_reward", TOY_TASK_REWARDS),
-                          ("model", MODEL_CHOICES),
+                          ("model", models.MODEL_CHOICES),
                           ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
