@@ -677,9 +677,8 @@ def main(argv=None):
         p.error(f"--batch must be >= 1, got {a.batch}")
     if a.model in REAL_MODELS and not a.model_path:
         p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
-    if a.model == "ltx2-random" and not torch.cuda.is_available():
-        p.error("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
-                "encoder): it needs a CUDA GPU, and there is none here")
+    if models.cannot_run_here(a.model):
+        p.error(models.cannot_run_here(a.model))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if a.lora and a.model == "toy":

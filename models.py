@@ -731,6 +731,12 @@ def _word_tokenizer(words: list[str]):
                                    unk_token="<unk>")
 
 
+def _load_part(kind, path: str, subfolder: str, dtype, device):
+    """One component of a local diffusers directory, in `dtype`, moved to `device` as it is loaded (so a backend's
+    __init__, which probes its VAE, runs there)."""
+    return kind.from_pretrained(path, subfolder=subfolder, torch_dtype=dtype).to(device)
+
+
 def _image_batch(frame0, height: int, width: int) -> torch.Tensor:
     """First frames (B, H, W, 3) uint8 -> (B, 3, height, width) in [-1, 1], bilinear: a real backend's VAE input."""
     img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1).permute(0, 3, 1, 2)
@@ -806,7 +812,7 @@ class LTX2Video(nn.Module):
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
         from transformers import AutoModelForCausalLM, AutoTokenizer
         def load(kind, sub):
-            return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
+            return _load_part(kind, path, sub, dtype, device)
         return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae"),
                    load(AutoModelForCausalLM, "text_encoder"),
                    AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
@@ -851,7 +857,7 @@ class LTX2Video(nn.Module):
 
     @classmethod
     def random(cls, words: list[str], frames: int = 121, height: int = 384, width: int = 576, device="cuda",
-               dtype=torch.bfloat16, seed: int = 0, layers: int = 48, text_layers: int = 48):
+               dtype=torch.bfloat16, seed: int = 0):
         """LTX-2 at its real size with random weights (train.py --model ltx2-random): what a step costs in seconds
         and memory on a GPU, without the weights, which cannot be downloaded here. Nothing it generates means
         anything. The sizes: diffusers' LTX2VideoTransformer3DModel, LTX2TextConnectors and AutoencoderKLLTX2Video
@@ -861,8 +867,7 @@ class LTX2Video(nn.Module):
         text model (48 layers of width 3840, 16 query and 8 key-value heads of 256, MLP 15360, vocabulary 262208;
         11.8B parameters), whose 49 hidden states the connectors read. The tokenizer is word-level over `words`
         (Gemma's cannot be downloaded), so token counts differ from Gemma's; prompts are padded to 1024 all the
-        same. Built directly on `device` in `dtype` (no float32 copy on the CPU); `layers` / `text_layers` shrink
-        the two stacks for a quick check of the code path."""
+        same. Built directly on `device` in `dtype` (no float32 copy on the CPU)."""
         _require("diffusers", "transformers", "tokenizers")
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
@@ -874,11 +879,11 @@ class LTX2Video(nn.Module):
         try:
             with torch.device(device):
                 text = Gemma3ForCausalLM(Gemma3TextConfig(
-                    vocab_size=262208, hidden_size=3840, intermediate_size=15360, num_hidden_layers=text_layers,
+                    vocab_size=262208, hidden_size=3840, intermediate_size=15360, num_hidden_layers=48,
                     num_attention_heads=16, num_key_value_heads=8, head_dim=256, query_pre_attn_scalar=256,
                     sliding_window=1024, max_position_embeddings=131072))
-                connectors = LTX2TextConnectors(text_proj_in_factor=text_layers + 1)
-                transformer = LTX2VideoTransformer3DModel(num_layers=layers)
+                connectors = LTX2TextConnectors()                 # reads Gemma's 48 + 1 hidden states
+                transformer = LTX2VideoTransformer3DModel()
                 vae = AutoencoderKLLTX2Video(spatial_compression_ratio=32, temporal_compression_ratio=8)
         finally:
             torch.set_default_dtype(default_dtype)
@@ -1019,7 +1024,7 @@ class HunyuanVideo15(nn.Module):
         from transformers import (AutoTokenizer, ByT5Tokenizer, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
                                   SiglipVisionModel, T5EncoderModel)
         def load(kind, sub):
-            return kind.from_pretrained(path, subfolder=sub, torch_dtype=dtype).to(device)
+            return _load_part(kind, path, sub, dtype, device)
         return cls(load(HunyuanVideo15Transformer3DModel, "transformer"), load(AutoencoderKLHunyuanVideo15, "vae"),
                    load(Qwen2_5_VLTextModel, "text_encoder"),
                    AutoTokenizer.from_pretrained(path, subfolder="tokenizer"),
@@ -1152,3 +1157,11 @@ class HunyuanVideo15(nn.Module):
 REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of train.py and bench.py: the paper's bases
 # --model of train.py and bench.py: the toy, the two bases, their tiny random-weight models, LTX-2 at size (random)
 MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")
+
+
+def cannot_run_here(model: str) -> str | None:
+    """Why this machine cannot run --model `model` (the one line train.py and bench.py exit with), or None."""
+    if model == "ltx2-random" and not torch.cuda.is_available():
+        return ("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
+                "encoder): it needs a CUDA GPU, and there is none here")
+    return None

@@ -331,9 +331,8 @@ def parse_args(argv=None) -> Args:
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
-    if args.model == "ltx2-random" and not torch.cuda.is_available():
-        p.error("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
-                "encoder): it needs a CUDA GPU, and there is none here")
+    if models.cannot_run_here(args.model):
+        p.error(models.cannot_run_here(args.model))
     if args.model != "toy" and args.lora_convs:
         p.error("--lora_convs is for the toy U-Net; a real backend's LoRA covers its video attention (Table 3)")
     if args.judge != "toy" and args.task_reward != "end_state":
