@@ -614,6 +614,8 @@ def main(argv=None):
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
                    "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
                    "toy bench")
+    p.add_argument("--offload_text", action="store_true", help="a real model: keep its text encoder in CPU memory "
+                   "between encodings (less GPU memory, the same videos)")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=None, help="bench pairs to evaluate (1..200; default 200, with --gallery "
@@ -681,6 +683,8 @@ def main(argv=None):
         p.error(models.cannot_run_here(a.model))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if a.offload_text and a.model == "toy":
+        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random, -tiny)")
     if a.lora and a.model == "toy":
         p.error("--lora loads a real model's Executor; a toy Executor checkpoint has its LoRA merged: --checkpoint")
     if a.model != "toy" and a.checkpoint:
@@ -709,7 +713,7 @@ def main(argv=None):
         if a.real:       # the loaders train.py uses (train imports this module, so not at the top)
             import train
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
-                             init=a.checkpoint or "")
+                             init=a.checkpoint or "", offload_text=a.offload_text)
             model, judge = train.load_base(run), train.make_judge(run)
             if a.lora:
                 run = models.load_lora(model, a.lora, add=True).get("args", {})

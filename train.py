@@ -210,6 +210,9 @@ class Args:
     grad_checkpoint: bool = False
     """real models: recompute the transformer's activations in the backward pass instead of keeping them (diffusers'
     gradient checkpointing): less memory for more compute, the same gradients"""
+    offload_text: bool = False
+    """real models: keep the text encoder in CPU memory and copy it to the GPU only to encode prompts (twice a
+    step): less GPU memory (LTX-2's Gemma-3-12B is 21.9 GiB) for a copy each time, the same numbers"""
     sampler: str = "ode"
     """rollout sampler for awm / nft: ode | sde (flow-grpo and grpo always use the SDE: they need its log-probs)"""
     noise_level: float = 0.7
@@ -373,6 +376,9 @@ def parse_args(argv=None) -> Args:
         p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
     if args.grad_checkpoint and args.model == "toy":
         p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
+    if args.offload_text and args.model == "toy":
+        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random and the "
+                "-tiny ones)")
     if args.eval_n > 200 and not args.eval_dataset:
         p.error("--eval_n must be at most 200 (the toy bench's size)")
     if args.eval_dataset and args.stage != "rl":
@@ -716,11 +722,12 @@ def plot_fig4_left(results: dict, path: str) -> None:
 def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
     """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (or its
     --executor_prompt; same noise). A real model's videos are thinned to 24 frames and rows of at most 128 px: at
-    LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, README)."""
+    LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, README).
+    Only the toy's 16-px rows are enlarged (8x); the scale once came from the first frames, which are the toy
+    bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured)."""
     from PIL import Image
     pairs = (world.bench_pairs(args.error_rate) if BENCH is None else BENCH)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
-    scale = max(1, scale * world.H // frame0.shape[1])     # a real model's frames are large already (bench.save_strip)
     batch = args.micro_batch or n
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
@@ -729,6 +736,7 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     F, H = demo.shape[1:3]   # a real model's 121 frames of 384 px: 24 frames evenly spaced, rows of at most 128 px
     keep, k = np.linspace(0, F - 1, min(F, 24)).round().astype(int), -(-H // 128)
     demo, exe = demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k]          # the toy's 6 frames of 16 px: unchanged
+    scale = max(1, scale * world.H // demo.shape[2])   # enlarged to the toy's 128 px rows; a real model's are already
     sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
     grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
@@ -1067,7 +1075,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
 
 _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
-                "eval_cache", "micro_batch", "grad_checkpoint")   # these change memory or speed, not the numbers
+                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text")   # these change memory or speed, not the numbers
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
@@ -1119,6 +1127,8 @@ def load_base(args: Args):
         model = REAL_MODELS[args.model].from_pretrained(args.model_path, device="cuda" if cuda else "cpu")
     if args.grad_checkpoint:       # recomputed in the backward pass: only with gradients on, so sampling is unchanged
         model.transformer.enable_gradient_checkpointing()
+    if args.offload_text:
+        model.offload_text()
     return model
 
 

@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 pytest.importorskip("diffusers")
 pytest.importorskip("peft")
@@ -15,6 +16,7 @@ import distill  # noqa: E402
 import models  # noqa: E402
 import reward  # noqa: E402
 import rl  # noqa: E402
+import train  # noqa: E402
 import world  # noqa: E402
 from conftest import run  # noqa: E402
 
@@ -169,6 +171,25 @@ def test_a_model_held_in_bfloat16_builds_samples_and_decodes(cls):
     assert video.dtype == np.uint8 and video.shape[0] == 2 and video.shape[2:] == (m.height, m.width, 3)
 
 
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_an_offloaded_text_encoder_visits_for_each_encoding_and_gives_the_same_condition(cls):
+    """--offload_text: the text encoder's weights live in CPU memory; for each condition() call they are copied to
+    the transformer's device and afterwards are their CPU originals again (the same tensors, nothing copied back).
+    Checked with a cast to float64 standing in for the copy to a GPU, which this machine lacks (Tensor.to takes
+    either): inside the block every weight is a new tensor, after it every weight is the original. The condition is the same as without offloading. (That the
+    copy goes to the GPU and saves its memory was measured on one: README, a real-size step on a GPU.)"""
+    m, f0, c_E, _ = _tiny(cls)
+    m.offload_text()
+    home = [(t.data_ptr(), t.dtype) for t in models._weights(m.text_encoder)]
+    with models.visiting(m.text_encoder, torch.float64):
+        assert {t.dtype for t in models._weights(m.text_encoder) if t.is_floating_point()} == {torch.float64}
+    assert [(t.data_ptr(), t.dtype) for t in models._weights(m.text_encoder)] == home
+    pairs = world.make_pairs(2, seed=0, error_rate=0.0)
+    c = m.condition(f0, [p.task.text for p in pairs])
+    assert [(t.data_ptr(), t.dtype) for t in models._weights(m.text_encoder)] == home
+    assert c.keys() == c_E.keys() and all(torch.equal(c[k], c_E[k]) for k in c)
+
+
 def test_ltx2_random_has_ltx2_19bs_sizes():
     """--model ltx2-random (a real-size step's seconds and memory on a GPU) builds LTX-2-19B's components: counted
     on the meta device, where nothing is allocated. The transformer 18.9B parameters (video and audio streams),
@@ -317,7 +338,7 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
 
 
 @pytest.mark.parametrize("model,judge,extra", [
-    ("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint"]),
+    ("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint", "--offload_text"]),
     ("hunyuan15-tiny", "qwen-vl-tiny", ["--eval_dataset", "held"])])
 def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
@@ -489,3 +510,15 @@ def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     assert counts["low aesthetic score"] == 1 and counts["unsuitable"] == 0
     with pytest.raises(FileNotFoundError, match="aesthetic scorer weights not found"):
         world.CLIPAesthetic.from_pretrained(str(tmp_path / "no_clip"), str(tmp_path / "no_head.pt"))
+
+
+def test_a_real_models_rollout_gif_is_thinned_not_enlarged(tmp_path):
+    """train.write_rollout_gif: the toy's 16-px rows are enlarged 8x to 128 px; a real model's rows are at most
+    128 px and not enlarged past that. The scale once came from the first frames, which are the toy bench's 16 px
+    for a real model too: at LTX-2's size it wrote a 116 MB GIF of 1024-px rows (measured on a GPU). Here a tiny
+    LTX-2 at 64 x 64: rows of 128 px (2x), not 512 (8x)."""
+    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], height=64, width=64)
+    train.BENCH = None
+    train.write_rollout_gif(m, str(tmp_path / "g.gif"), train.Args(model="ltx2-tiny", sample_steps=1), n=2)
+    gif = Image.open(tmp_path / "g.gif")
+    assert gif.size == (2 * 128 + 2 * 2, 2 * 128) and gif.n_frames <= 24

@@ -235,6 +235,7 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--micro_batch", "-1"], "--micro_batch must be >= 0"),
                       (["--stage", "distill", "--micro_batch", "4"], "--micro_batch splits the rl stage's"),
                       (["--grad_checkpoint"], "--grad_checkpoint is for a real model's transformer"),
+                      (["--offload_text"], "--offload_text is for a real model's text encoder"),
                       (["--executor_ema", "1"], "--executor_ema must lie in [0, 1)"),
                       (["--executor_ema_every", "0"], "--executor_ema_every must be >= 1"),
                       (["--stage", "distill", "--executor_ema", "0.9"], "--executor_ema averages the rl stage's"),
