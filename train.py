@@ -1074,8 +1074,9 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
 
+# these change memory or speed, not the numbers: a resumed run may change them
 _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
-                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text")   # these change memory or speed, not the numbers
+                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text")
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
