@@ -759,8 +759,9 @@ def _weights(module: nn.Module) -> list[torch.Tensor]:
 
 def offload(module: nn.Module) -> None:
     """Keep a frozen module's weights in CPU memory, pinned when there is a GPU (faster to copy from); `visiting`
-    brings them to the GPU for one call. For a real model's text encoder (train.py --offload_text): it runs twice a
-    step (c_E and c_D), and its weights are a third of LTX-2's (Gemma-3-12B: 21.9 GiB of 62.0)."""
+    brings them to the GPU for one call. For a real model's text encoder (train.py and bench.py --offload_text): it
+    runs twice a step (c_E and c_D), and its weights are a third of LTX-2's (Gemma-3-12B: 21.9 GiB of 62.0). Both
+    backends' condition() encode inside `visiting`, so nothing else changes."""
     pin = torch.cuda.is_available()
     for t in _weights(module):
         t.data = t.data.cpu().pin_memory() if pin else t.data.cpu()
@@ -770,7 +771,8 @@ def offload(module: nn.Module) -> None:
 def visiting(module: nn.Module, device):
     """Inside this block the module's weights are copies on `device`; after it they are their CPU originals again.
     The weights are frozen, so nothing is copied back: the copies are simply dropped (their memory returns to the
-    allocator for the next step's activations)."""
+    allocator for the next step's activations). Weights already on `device` (not offloaded) are not copied: then
+    the block changes nothing."""
     tensors = _weights(module)
     homes = [t.data for t in tensors]
     for t in tensors:
@@ -819,7 +821,6 @@ class LTX2Video(nn.Module):
         self.transformer, self.vae, self.text_encoder, self.connectors = transformer, vae, text_encoder, connectors
         self.tokenizer = tokenizer
         self.frames, self.height, self.width, self.fps, self.max_len = frames, height, width, fps, max_sequence_length
-        self.offloaded = False
         for m in (vae, text_encoder, connectors):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself (its compression ratios vary by config)
@@ -920,12 +921,6 @@ class LTX2Video(nn.Module):
             torch.set_default_dtype(default_dtype)
         return cls(transformer, vae, text, tokenizer, connectors, frames, height, width)
 
-    def offload_text(self) -> None:
-        """Keep Gemma in CPU memory between encodings (`offload`; train.py and bench.py --offload_text): 21.9 GiB
-        less on the GPU at LTX-2's size, for a copy to the GPU at each condition() call."""
-        offload(self.text_encoder)
-        self.offloaded = True
-
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
     def add_lora(self, rank: int, alpha: float, target: str = LTX2_VIDEO_ATTENTION) -> list[str]:
         """Table 3: LoRA on the video attention projections only; B = 0 at init (the Executor starts as the base)."""
@@ -955,7 +950,7 @@ class LTX2Video(nn.Module):
         self.tokenizer.padding_side = "left"
         ids = self.tokenizer([t.strip() for t in texts], padding="max_length", max_length=self.max_len,
                              truncation=True, add_special_tokens=True, return_tensors="pt").to(dev)
-        with visiting(self.text_encoder, dev) if self.offloaded else contextlib.nullcontext():
+        with visiting(self.text_encoder, dev):   # offloaded (train.py --offload_text): a copy on dev
             hs = self.text_encoder(input_ids=ids.input_ids, attention_mask=ids.attention_mask,
                                    output_hidden_states=True, logits_to_keep=1).hidden_states
         emb = torch.stack(hs, dim=-1).flatten(2, 3)
@@ -1040,7 +1035,6 @@ class HunyuanVideo15(nn.Module):
         self.tokenizer, self.tokenizer_2 = tokenizer, tokenizer_2
         self.frames, self.height, self.width = frames, height, width
         self.max_len, self.crop_start, self.byt5_max_len = max_sequence_length, crop_start, byt5_max_length
-        self.offloaded = False
         for m in (vae, text_encoder, text_encoder_2, image_encoder):
             m.requires_grad_(False).eval()
         with torch.no_grad():   # the latent grid, read off the VAE itself
@@ -1114,12 +1108,6 @@ class HunyuanVideo15(nn.Module):
                    SiglipImageProcessorPil(size={"height": 32, "width": 32}), frames, height, width,
                    max_sequence_length=16, crop_start=0, byt5_max_length=16)
 
-    def offload_text(self) -> None:
-        """Keep the Qwen2.5-VL text encoder in CPU memory between encodings (`offload`; train.py and bench.py
-        --offload_text), for a copy to the GPU at each condition() call."""
-        offload(self.text_encoder)
-        self.offloaded = True
-
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
     def add_lora(self, rank: int, alpha: float, target: str = HY15_VIDEO_ATTENTION) -> list[str]:
         """Table 3: LoRA rank 64 / alpha 128; here on the video stream's attention projections (the joint blocks'
@@ -1140,7 +1128,7 @@ class HunyuanVideo15(nn.Module):
         self.check_prompts(texts)
         dev = next(self.transformer.parameters()).device
         texts = [t.strip() for t in texts]
-        with visiting(self.text_encoder, dev) if self.offloaded else contextlib.nullcontext():
+        with visiting(self.text_encoder, dev):   # offloaded (train.py --offload_text): a copy on dev
             emb, mask = Pipe._get_mllm_prompt_embeds(self.text_encoder, self.tokenizer, texts, dev,
                                                      tokenizer_max_length=self.max_len, crop_start=self.crop_start)
         emb2, mask2 = Pipe._get_byt5_prompt_embeds(self.tokenizer_2, self.text_encoder_2, texts, dev,

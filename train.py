@@ -1129,7 +1129,7 @@ def load_base(args: Args):
     if args.grad_checkpoint:       # recomputed in the backward pass: only with gradients on, so sampling is unchanged
         model.transformer.enable_gradient_checkpointing()
     if args.offload_text:
-        model.offload_text()
+        models.offload(model.text_encoder)
     return model
 
 

@@ -180,7 +180,7 @@ def test_an_offloaded_text_encoder_visits_for_each_encoding_and_gives_the_same_c
     the same as without offloading. (That the copy goes to the GPU and saves its memory was measured on one: README,
     a real-size step on a GPU.)"""
     m, f0, c_E, _ = _tiny(cls)
-    m.offload_text()
+    models.offload(m.text_encoder)
     home = [(t.data_ptr(), t.dtype) for t in models._weights(m.text_encoder)]
     with models.visiting(m.text_encoder, torch.float64):
         assert {t.dtype for t in models._weights(m.text_encoder) if t.is_floating_point()} == {torch.float64}
