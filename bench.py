@@ -608,14 +608,17 @@ def main(argv=None):
     p.add_argument("--model_path", default="", help="--model ltx2 / hunyuan15: the local diffusers directory")
     p.add_argument("--lora", default=None, help="a real model's Executor: the LoRA file train.py wrote "
                    "(<run_dir>/executor_awm.pt); without it the base itself (given D: the Demonstrator)")
-    p.add_argument("--judge", default="toy", choices=("toy", "qwen-vl", "qwen-vl-tiny"),
-                   help="toy (reward.py's judges) | qwen-vl (--judge_path; the bench prompts of Figs. 15-17)")
+    p.add_argument("--judge", default="toy", choices=reward.JUDGE_CHOICES,
+                   help="toy (reward.py's judges) | qwen-vl (--judge_path; the bench prompts of Figs. 15-17) | "
+                        "qwen-vl-tiny | qwen-vl-random (Qwen3-VL-8B's sizes, random weights, on a GPU)")
     p.add_argument("--judge_path", default="", help="--judge qwen-vl: the local transformers directory")
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
                    "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
                    "toy bench")
     p.add_argument("--offload_text", action="store_true", help="a real model: keep its text encoder in CPU memory "
                    "between encodings (less GPU memory, the same videos)")
+    p.add_argument("--offload_judge", action="store_true", help="a VLM judge: keep its weights in CPU memory "
+                   "between the batches it judges (less GPU memory, the same judgments)")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=None, help="bench pairs to evaluate (1..200; default 200, with --gallery "
@@ -679,10 +682,12 @@ def main(argv=None):
         p.error(f"--batch must be >= 1, got {a.batch}")
     if a.model in REAL_MODELS and not a.model_path:
         p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
-    if models.cannot_run_here(a.model):
-        p.error(models.cannot_run_here(a.model))
+    if models.cannot_run_here(a.model, a.judge):
+        p.error(models.cannot_run_here(a.model, a.judge))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if a.offload_judge and a.judge == "toy":
+        p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if a.offload_text and a.model == "toy":
         p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random, -tiny)")
     if a.lora and a.model == "toy":
@@ -713,7 +718,7 @@ def main(argv=None):
         if a.real:       # the loaders train.py uses (train imports this module, so not at the top)
             import train
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
-                             init=a.checkpoint or "", offload_text=a.offload_text)
+                             init=a.checkpoint or "", offload_text=a.offload_text, offload_judge=a.offload_judge)
             model, judge = train.load_base(run), train.make_judge(run)
             if a.lora:
                 run = models.load_lora(model, a.lora, add=True).get("args", {})

@@ -1193,9 +1193,13 @@ REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of tr
 MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")
 
 
-def cannot_run_here(model: str) -> str | None:
-    """Why this machine cannot run --model `model` (the one line train.py and bench.py exit with), or None."""
+def cannot_run_here(model: str, judge: str = "toy") -> str | None:
+    """Why this machine cannot run --model `model` with --judge `judge` (the one line train.py and bench.py exit
+    with), or None."""
     if model == "ltx2-random" and not torch.cuda.is_available():
         return ("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
                 "encoder): it needs a CUDA GPU, and there is none here")
+    if judge == "qwen-vl-random" and not torch.cuda.is_available():
+        return ("--judge qwen-vl-random builds Qwen3-VL-8B at its real size (17.5 GB of bf16 weights): it needs a "
+                "CUDA GPU, and there is none here")
     return None

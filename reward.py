@@ -31,6 +31,9 @@ SLACK = 0.35        # px of extra tolerance on the task rules for sub-pixel blur
 MAX_STEP = world.MAX_SPEED + 0.6  # px per frame (Chebyshev) above which a move is a teleport
 MIN_BLOB = 3        # px: smaller specks of a colour are ignored as noise
 SCORE_CLIP = 6.0    # graded scores live in [-6, 6], like a confident VLM's log-odds
+# --judge of train.py and bench.py: these rules, a VLM from a local directory, a tiny random-weight Qwen3-VL for CPU
+# checks, Qwen3-VL-8B at its real size with random weights for a GPU's seconds and memory (VLMJudge)
+JUDGE_CHOICES = ("toy", "qwen-vl", "qwen-vl-tiny", "qwen-vl-random")
 
 
 @dataclass
@@ -299,9 +302,10 @@ class VLMJudge:
     load), each as <|vision_start|><|image_pad|>...<|vision_end|>, in one user turn before the prompt; the answer is
     read off the logits of the first assistant token. Same method names and Judgment results as the toy judges."""
 
-    def __init__(self, model, tokenizer, image_processor, frames: int = 8, batch: int = 8):
+    def __init__(self, model, tokenizer, image_processor, frames: int = 8, batch: int = 8, device=None):
         self.model, self.tokenizer, self.image_processor = model.eval(), tokenizer, image_processor
         self.frames, self.batch = frames, batch
+        self.device = model.device if device is None else device   # where it runs; its weights may live elsewhere
         vocab = tokenizer.get_vocab()
         for tok in ("<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>",
                     "Yes", "No", "0", "1"):
@@ -323,18 +327,16 @@ class VLMJudge:
         return cls(AutoModelForImageTextToText.from_pretrained(path, dtype=dtype or "auto"),
                    AutoTokenizer.from_pretrained(path), Qwen2VLImageProcessorPil.from_pretrained(path))
 
-    @classmethod
-    def tiny(cls, words: list[str], seed: int = 0):
-        """A random-weight Qwen3-VL of the real classes for CPU tests (text hidden 32, 2 layers; vision depth 2)."""
-        import torch
-
+    @staticmethod
+    def _word_tokenizer(words: list[str]):
+        """A word-level tokenizer over the prompts' words and `words`, with Qwen's special tokens and "Yes" / "No" /
+        "0" / "1" as single tokens (Qwen's own cannot be downloaded here). Returns (tokenizer, vocab)."""
         import models
         models._require("transformers", "tokenizers")
         from tokenizers import Tokenizer as HFTokenizer
         from tokenizers import models as tok_models
         from tokenizers import pre_tokenizers
-        from transformers import (PreTrainedTokenizerFast, Qwen2VLImageProcessorPil, Qwen3VLConfig,
-                                  Qwen3VLForConditionalGeneration)
+        from transformers import PreTrainedTokenizerFast
         specials = ["<pad>", "<unk>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
                     "<|image_pad|>", "<|video_pad|>"]
         prompt_words = " ".join([TASK_REWARD_PROMPT, CONSISTENCY_REWARD_PROMPT, BENCH_TASK_PROMPT, BENCH_AGENT_PROMPT,
@@ -344,8 +346,20 @@ class VLMJudge:
         vocab = {w: i for i, w in enumerate(specials + [w for w in toks if w not in specials])}
         tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
         tok.pre_tokenizer = pre
-        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", unk_token="<unk>",
-                                            additional_special_tokens=specials[2:])
+        return PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", unk_token="<unk>",
+                                       additional_special_tokens=specials[2:]), vocab
+
+    @staticmethod
+    def _special_ids(vocab: dict) -> dict:
+        return dict(image_token_id=vocab["<|image_pad|>"], video_token_id=vocab["<|video_pad|>"],
+                    vision_start_token_id=vocab["<|vision_start|>"], vision_end_token_id=vocab["<|vision_end|>"])
+
+    @classmethod
+    def tiny(cls, words: list[str], seed: int = 0):
+        """A random-weight Qwen3-VL of the real classes for CPU tests (text hidden 32, 2 layers; vision depth 2)."""
+        import torch
+        from transformers import Qwen2VLImageProcessorPil, Qwen3VLConfig, Qwen3VLForConditionalGeneration
+        tokenizer, vocab = cls._word_tokenizer(words)
         torch.manual_seed(seed)
         cfg = Qwen3VLConfig(
             text_config=dict(vocab_size=len(vocab), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
@@ -355,11 +369,53 @@ class VLMJudge:
             vision_config=dict(depth=2, hidden_size=32, intermediate_size=64, num_heads=2, patch_size=16,
                                out_hidden_size=32, spatial_merge_size=2, temporal_patch_size=2,
                                num_position_embeddings=64, deepstack_visual_indexes=[1]),
-            image_token_id=vocab["<|image_pad|>"], video_token_id=vocab["<|video_pad|>"],
-            vision_start_token_id=vocab["<|vision_start|>"], vision_end_token_id=vocab["<|vision_end|>"])
+            **cls._special_ids(vocab))
         proc = Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2, min_pixels=32 * 32,
                                         max_pixels=64 * 64)
         return cls(Qwen3VLForConditionalGeneration(cfg), tokenizer, proc, frames=4, batch=4)
+
+    @classmethod
+    def random(cls, words: list[str], device="cuda", dtype=None, seed: int = 0):
+        """Qwen3-VL-8B-Instruct at its real size with random weights (--judge qwen-vl-random): what judging costs in
+        seconds and memory on a GPU beside the video model (Table 3's reward model of the HunyuanVideo-1.5 setting),
+        without the weights, which cannot be downloaded here. Its answers mean nothing: random weights answer with
+        arbitrary tokens, which the run counts as malformed and skips. The sizes are Qwen3-VL-8B-Instruct's config:
+        text 36 layers of width 4096 (32 query and 8 key-value heads of 128, MLP 12288, vocabulary 151936, untied
+        output), vision 27 layers of width 1152 (16 heads, MLP 4304, 16-px patches merged 2 x 2, deep-stack from
+        layers 8, 16, 24); 8.77B parameters. Its image processor's pixel limits are Qwen3-VL's (65,536 to
+        16,777,216), so a 384 x 576 frame is 24 x 36 patches, 216 tokens. The tokenizer is word-level
+        (_word_tokenizer), so prompts are fewer tokens than under Qwen's. Built directly on `device` in bf16."""
+        import torch
+        from transformers import Qwen2VLImageProcessorPil, Qwen3VLConfig, Qwen3VLForConditionalGeneration
+        tokenizer, vocab = cls._word_tokenizer(words)
+        torch.manual_seed(seed)
+        cfg = Qwen3VLConfig(
+            text_config=dict(vocab_size=151936, hidden_size=4096, intermediate_size=12288, num_hidden_layers=36,
+                             num_attention_heads=32, num_key_value_heads=8, head_dim=128,
+                             max_position_embeddings=262144, tie_word_embeddings=False,
+                             rope_parameters={"rope_type": "default", "rope_theta": 5000000.0,
+                                              "mrope_section": [24, 20, 20], "mrope_interleaved": True}),
+            vision_config=dict(depth=27, hidden_size=1152, intermediate_size=4304, num_heads=16, patch_size=16,
+                               out_hidden_size=4096, spatial_merge_size=2, temporal_patch_size=2,
+                               num_position_embeddings=2304, deepstack_visual_indexes=[8, 16, 24]),
+            tie_word_embeddings=False, **cls._special_ids(vocab))
+        default_dtype = torch.get_default_dtype()
+        torch.set_default_dtype(dtype or torch.bfloat16)
+        try:
+            with torch.device(device):
+                model = Qwen3VLForConditionalGeneration(cfg)
+        finally:
+            torch.set_default_dtype(default_dtype)
+        proc = Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2, min_pixels=65536,
+                                        max_pixels=16777216)
+        return cls(model, tokenizer, proc, device=device)
+
+    def offload(self) -> None:
+        """Keep the VLM's weights in CPU memory (pinned where there is a GPU) and copy them to self.device for each
+        batch it judges (train.py / bench.py --offload_judge; models.offload): they are not on the GPU during the
+        video model's update, where a step peaks."""
+        import models
+        models.offload(self.model)
 
     def _frames(self, video) -> list:
         from PIL import Image
@@ -377,6 +433,8 @@ class VLMJudge:
     def logits(self, videos, prompts: list[str]) -> np.ndarray:
         """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches."""
         import torch
+
+        import models
         out = []
         for s in range(0, len(prompts), self.batch):
             vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
@@ -390,8 +448,8 @@ class VLMJudge:
             self.tokenizer.padding_side = "left"
             enc = self.tokenizer(texts, return_tensors="pt", padding=True)
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
-            dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
-            with torch.no_grad():
+            with torch.no_grad(), models.visiting(self.model, self.device):   # no copy unless offloaded
+                dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
                 o = self.model(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
                                pixel_values=img["pixel_values"].to(dev, self.model.dtype),
                                image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),
@@ -407,6 +465,8 @@ class VLMJudge:
     def generate(self, images, prompt: str, max_new_tokens: int = 512) -> list[str]:
         """Greedy answers to a prompt about each still image (the task-solution generator, Sec. 4.1.1)."""
         import torch
+
+        import models
         out = []
         for im in images:
             frames = self._frames(np.asarray(im)[None])
@@ -414,8 +474,8 @@ class VLMJudge:
             n = int(img["image_grid_thw"].prod(-1)[0]) // self.image_processor.merge_size ** 2
             enc = self.tokenizer([self._chat([n], prompt)], return_tensors="pt")
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()
-            dev = self.model.device
-            with torch.no_grad():
+            with torch.no_grad(), models.visiting(self.model, self.device):
+                dev = self.model.device
                 ids = self.model.generate(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
                                           pixel_values=img["pixel_values"].to(dev, self.model.dtype),
                                           image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),

@@ -193,9 +193,13 @@ class Args:
     image-task pairs), judged with the bench prompts; empty: the toy bench. No row may also be in --dataset"""
     judge: str = "toy"
     """the judge of rewards and bench: toy (reward.py's rule-based judges) | qwen-vl (a Qwen3-VL / Qwen3.5 from
-    --judge_path, the paper's prompts, log p(yes) - log p(no)) | qwen-vl-tiny (random-weight Qwen3-VL, for checks)"""
+    --judge_path, the paper's prompts, log p(yes) - log p(no)) | qwen-vl-tiny (random-weight Qwen3-VL, for checks) |
+    qwen-vl-random (Qwen3-VL-8B's real sizes, random weights, on a GPU: a judgment's seconds and memory)"""
     judge_path: str = ""
     """--judge qwen-vl: a local transformers directory of the VLM"""
+    offload_judge: bool = False
+    """a VLM judge: keep its weights in CPU memory and copy them to the GPU for each batch it judges, so that they
+    are not on the GPU during the update, where a step peaks (Qwen3-VL-8B: 16.3 GiB); the same judgments"""
     # ---- rl (Alg. 1: the whole method) ----
     trainer: str = "awm"
     """policy-gradient objective L_RL (rl.py): awm (the paper's main setting) | flow-grpo | grpo | nft"""
@@ -318,7 +322,7 @@ def parse_args(argv=None) -> Args:
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
-                          ("judge", ("toy", "qwen-vl", "qwen-vl-tiny"))):
+                          ("judge", reward.JUDGE_CHOICES)):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
@@ -334,8 +338,8 @@ def parse_args(argv=None) -> Args:
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
-    if models.cannot_run_here(args.model):
-        p.error(models.cannot_run_here(args.model))
+    if models.cannot_run_here(args.model, args.judge):
+        p.error(models.cannot_run_here(args.model, args.judge))
     if args.model != "toy" and args.lora_convs:
         p.error("--lora_convs is for the toy U-Net; a real backend's LoRA covers its video attention (Table 3)")
     if args.judge != "toy" and args.task_reward != "end_state":
@@ -376,6 +380,8 @@ def parse_args(argv=None) -> Args:
         p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
     if args.grad_checkpoint and args.model == "toy":
         p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
+    if args.offload_judge and args.judge == "toy":
+        p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if args.offload_text and args.model == "toy":
         p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random and the "
                 "-tiny ones)")
@@ -768,10 +774,15 @@ def make_judge(args: Args):
         return None
     if args.judge == "qwen-vl-tiny":
         judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
+    elif args.judge == "qwen-vl-random":      # built on the GPU directly, in bf16
+        judge = reward.VLMJudge.random(world.VOCAB + ["[", "]:"], seed=args.seed)
     else:
         judge = reward.VLMJudge.from_pretrained(args.judge_path)
     if torch.cuda.is_available():     # beside the video model, on this process's GPU (torchrun: its LOCAL_RANK)
         judge.model.to("cuda")
+        judge.device = judge.model.device
+    if args.offload_judge:
+        judge.offload()
     return judge
 
 
@@ -1076,7 +1087,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 
 # these change memory or speed, not the numbers: a resumed run may change them
 _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
-                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text")
+                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text", "offload_judge")
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,

@@ -339,7 +339,7 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
 
 
 @pytest.mark.parametrize("model,judge,extra", [
-    ("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint", "--offload_text"]),
+    ("ltx2-tiny", "qwen-vl-tiny", ["--micro_batch", "1", "--grad_checkpoint", "--offload_text", "--offload_judge"]),
     ("hunyuan15-tiny", "qwen-vl-tiny", ["--eval_dataset", "held"])])
 def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     """Alg. 1 with the real classes on a WorldTasks JSONL file: LTX-2 (or HunyuanVideo-1.5) rollouts, Qwen3-VL
@@ -415,6 +415,51 @@ def test_tiny_vlm_judge_batches_like_single_items():
     assert len(judge.bench(videos[:1], tasks[:1])[0]) == 3
     r = run("train.py", "--judge", "qwen-vl")
     assert r.returncode == 2 and "--judge qwen-vl needs --judge_path" in r.stderr
+
+
+def test_an_offloaded_judge_visits_for_each_batch_and_gives_the_same_logits():
+    """--offload_judge: the VLM's weights live in CPU memory and visit the judge's device for each batch it judges,
+    then are their CPU originals again. As for the text encoder, a cast to float64 stands in for the copy to a GPU:
+    inside the forward every weight is a new float64 tensor, after it the original; the logits are the resident
+    judge's (to float32's precision)."""
+    judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
+    pairs = world.make_pairs(3, seed=1, error_rate=0.0)
+    videos = [np.repeat(p.frame0[None], 6, axis=0) for p in pairs]
+    prompts = [reward.CONSISTENCY_REWARD_PROMPT] * 3
+    resident = judge.logits(videos, prompts)
+    judge.offload()
+    judge.device = torch.float64
+    home = [(t.data_ptr(), t.dtype) for t in models._weights(judge.model)]
+    seen = []
+    hook = judge.model.register_forward_pre_hook(
+        lambda mod, args: seen.append({(t.data_ptr(), t.dtype) for t in models._weights(mod)}))
+    offloaded = judge.logits(videos, prompts)
+    hook.remove()
+    assert len(seen) == 1 and not seen[0] & set(home) and {d for _, d in seen[0]} >= {torch.float64}
+    assert [(t.data_ptr(), t.dtype) for t in models._weights(judge.model)] == home
+    assert np.allclose(offloaded, resident, atol=1e-4) and not np.array_equal(offloaded, resident)
+    for script in ("train.py", "bench.py"):
+        r = run(script, "--offload_judge")
+        assert r.returncode == 2 and "--offload_judge is for a VLM judge" in r.stderr
+
+
+def test_qwen_vl_random_has_qwen3_vl_8bs_sizes():
+    """--judge qwen-vl-random (a real-size judgment's seconds and memory on a GPU) builds Qwen3-VL-8B-Instruct:
+    counted on the meta device, 8.77B parameters (vision 0.58B, language model 7.57B, untied output head 0.62B), in
+    bf16; its image processor makes a 384 x 576 frame 24 x 36 patches of 16 px, merged 2 x 2 into 216 tokens."""
+    judge = reward.VLMJudge.random(world.VOCAB + ["[", "]:"], device="meta")
+    m = judge.model
+    count = {k: sum(p.numel() for p in mod.parameters()) / 1e9
+             for k, mod in (("all", m), ("vision", m.model.visual), ("language", m.model.language_model),
+                            ("head", m.lm_head))}
+    assert count == pytest.approx({"all": 8.77, "vision": 0.58, "language": 7.57, "head": 0.62}, abs=0.005)
+    assert {p.dtype for p in m.parameters()} == {torch.bfloat16} and torch.get_default_dtype() == torch.float32
+    frame = np.zeros((384, 576, 3), np.uint8)
+    grid = judge.image_processor(images=[Image.fromarray(frame)], return_tensors="pt")["image_grid_thw"]
+    assert grid.tolist() == [[1, 24, 36]] and int(grid.prod()) // 4 == 216
+    for script in ("train.py", "bench.py"):
+        r = run(script, "--judge", "qwen-vl-random")
+        assert r.returncode == 2 and "needs a CUDA GPU" in r.stderr    # this machine has none
 
 
 def _toy_dataset(d, n, seed=5):
