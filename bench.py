@@ -603,8 +603,8 @@ def main(argv=None):
     p.add_argument("--model", default="toy",
                    choices=models.MODEL_CHOICES,
                    help="toy (--checkpoint) | ltx2 | hunyuan15 (a local diffusers directory, --model_path) | "
-                        "ltx2-tiny | hunyuan15-tiny (random weights, for checks) | ltx2-random (LTX-2's real sizes, "
-                        "random weights, on a GPU: the seconds a video)")
+                        "ltx2-tiny | hunyuan15-tiny (random weights, for checks) | ltx2-random | hunyuan15-random "
+                        "(the real sizes, random weights, on a GPU: the seconds a video)")
     p.add_argument("--model_path", default="", help="--model ltx2 / hunyuan15: the local diffusers directory")
     p.add_argument("--lora", default=None, help="a real model's Executor: the LoRA file train.py wrote "
                    "(<run_dir>/executor_awm.pt); without it the base itself (given D: the Demonstrator)")
@@ -689,7 +689,7 @@ def main(argv=None):
     if a.offload_judge and a.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if a.offload_text and a.model == "toy":
-        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random, -tiny)")
+        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15, -tiny, -random)")
     if a.lora and a.model == "toy":
         p.error("--lora loads a real model's Executor; a toy Executor checkpoint has its LoRA merged: --checkpoint")
     if a.model != "toy" and a.checkpoint:

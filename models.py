@@ -1037,6 +1037,9 @@ class HunyuanVideo15(nn.Module):
         self.max_len, self.crop_start, self.byt5_max_len = max_sequence_length, crop_start, byt5_max_length
         for m in (vae, text_encoder, text_encoder_2, image_encoder):
             m.requires_grad_(False).eval()
+        # the VAE in 256-px tiles, as the pipeline's own example sets it (pipe.vae.enable_tiling()): at 121 frames of
+        # 480 x 848 one 128-channel activation of its outer blocks is 12.6 GB in bf16. Below 256 px nothing changes.
+        vae.enable_tiling()
         with torch.no_grad():   # the latent grid, read off the VAE itself
             zeros = torch.zeros(1, 3, frames, height, width, device=vae.device, dtype=vae.dtype)
             z = vae.encode(zeros).latent_dist.mode()
@@ -1065,20 +1068,14 @@ class HunyuanVideo15(nn.Module):
                    load(SiglipVisionModel, "image_encoder"),
                    SiglipImageProcessorPil.from_pretrained(path, subfolder="feature_extractor"), frames, height, width)
 
-    @classmethod
-    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0,
-             dtype=torch.float32):
-        """A random-weight HunyuanVideo-1.5 of the real classes, small enough for CPU tests (sizes after diffusers'
-        own tests; a word-level tokenizer whose chat template keeps only the user turn, so nothing is cropped).
-        `dtype`: the components' dtype (bfloat16 is how from_pretrained loads the real one)."""
-        _require("diffusers", "transformers", "tokenizers")
-        from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
+    @staticmethod
+    def _word_tokenizer(words: list[str]):
+        """A word-level tokenizer over `words` whose chat template keeps only the user turn, so nothing is cropped
+        (Qwen2.5-VL's own cannot be downloaded here). Returns (tokenizer, vocabulary size)."""
         from tokenizers import Tokenizer as HFTokenizer
         from tokenizers import models as tok_models
         from tokenizers import pre_tokenizers
-        from transformers import (ByT5Tokenizer, PreTrainedTokenizerFast, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel,
-                                  SiglipImageProcessorPil, SiglipVisionConfig, SiglipVisionModel, T5Config,
-                                  T5EncoderModel)
+        from transformers import PreTrainedTokenizerFast
         specials = ["<pad>", "<eos>", "<unk>"]
         vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
         tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
@@ -1087,9 +1084,22 @@ class HunyuanVideo15(nn.Module):
                                             unk_token="<unk>")
         tokenizer.chat_template = ("{% for m in messages %}{% if m['role'] == 'user' %}{{ m['content'] }}{% endif %}"
                                    "{% endfor %}")
+        return tokenizer, len(vocab)
+
+    @classmethod
+    def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0,
+             dtype=torch.float32):
+        """A random-weight HunyuanVideo-1.5 of the real classes, small enough for CPU tests (sizes after diffusers'
+        own tests; the word-level tokenizer above).
+        `dtype`: the components' dtype (bfloat16 is how from_pretrained loads the real one)."""
+        _require("diffusers", "transformers", "tokenizers")
+        from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
+        from transformers import (ByT5Tokenizer, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
+                                  SiglipVisionConfig, SiglipVisionModel, T5Config, T5EncoderModel)
+        tokenizer, n_vocab = cls._word_tokenizer(words)
         torch.manual_seed(seed)
         text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
-            vocab_size=len(vocab), hidden_size=16, intermediate_size=16, num_hidden_layers=3, num_attention_heads=2,
+            vocab_size=n_vocab, hidden_size=16, intermediate_size=16, num_hidden_layers=3, num_attention_heads=2,
             num_key_value_heads=2, rope_theta=1e6,
             rope_scaling={"mrope_section": [1, 1, 2], "rope_type": "default", "type": "default"}))
         byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=32, d_kv=8, d_ff=32, num_layers=1, num_heads=2))
@@ -1107,6 +1117,48 @@ class HunyuanVideo15(nn.Module):
                    siglip.to(dtype),
                    SiglipImageProcessorPil(size={"height": 32, "width": 32}), frames, height, width,
                    max_sequence_length=16, crop_start=0, byt5_max_length=16)
+
+    @classmethod
+    def random(cls, words: list[str], frames: int = 121, height: int = 480, width: int = 848, device="cuda",
+               dtype=torch.bfloat16, seed: int = 0):
+        """HunyuanVideo-1.5 (480p image-to-video) at its real size with random weights (--model hunyuan15-random):
+        what Table 3's second column costs in seconds and memory on a GPU, without the weights. Nothing it generates
+        means anything. The sizes: diffusers' HunyuanVideo15Transformer3DModel and AutoencoderKLHunyuanVideo15 at
+        their default configs, which are the 480p model's (54 double-stream layers of 16 x 128 heads, 8.33B
+        parameters; the VAE 16x in space, 4x in time, 32 channels, 1.26B); the text encoders the widths the
+        transformer reads: Qwen2.5-VL-7B's text model (28 layers of width 3584, 28 query and 4 key-value heads, MLP
+        18944, vocabulary 152064; 7.07B) and ByT5-small's encoder (12 layers of width 1472, 0.22B); the image
+        encoder SigLIP-so400m at 384 px (27 layers of width 1152; 0.43B). At 121 frames of 480 x 848 the state is
+        31 latent frames of 30 x 53 (the first frame's latent rides along as channels): 49,290 video tokens a
+        forward. The tokenizer is word-level
+        (_word_tokenizer), so prompts are fewer tokens than under Qwen's; they are padded to 1000 all the same.
+        Built directly on `device` in `dtype`."""
+        _require("diffusers", "transformers", "tokenizers")
+        from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
+        from transformers import (ByT5Tokenizer, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
+                                  SiglipVisionConfig, SiglipVisionModel, T5Config, T5EncoderModel)
+        tokenizer, _ = cls._word_tokenizer(words)
+        torch.manual_seed(seed)
+        default_dtype = torch.get_default_dtype()
+        torch.set_default_dtype(dtype)
+        try:
+            with torch.device(device):
+                text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
+                    vocab_size=152064, hidden_size=3584, intermediate_size=18944, num_hidden_layers=28,
+                    num_attention_heads=28, num_key_value_heads=4, rope_theta=1e6, max_position_embeddings=128000,
+                    rope_scaling={"mrope_section": [16, 24, 24], "rope_type": "default", "type": "default"}))
+                byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=1472, d_kv=64, d_ff=3584, num_layers=12,
+                                               num_heads=6, feed_forward_proj="gated-gelu"))
+                siglip = SiglipVisionModel(SiglipVisionConfig(hidden_size=1152, intermediate_size=4304,
+                                                              num_hidden_layers=27, num_attention_heads=16,
+                                                              image_size=384, patch_size=14))
+                transformer = HunyuanVideo15Transformer3DModel()
+                vae = AutoencoderKLHunyuanVideo15()
+        finally:
+            torch.set_default_dtype(default_dtype)
+        return cls(transformer, vae, text, tokenizer, byt5, ByT5Tokenizer(), siglip,
+                   SiglipImageProcessorPil(size={"height": 384, "width": 384}), frames, height, width,
+                   max_sequence_length=1000, crop_start=0, byt5_max_length=256)
 
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
     def add_lora(self, rank: int, alpha: float, target: str = HY15_VIDEO_ATTENTION) -> list[str]:
@@ -1190,7 +1242,7 @@ class HunyuanVideo15(nn.Module):
 
 REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of train.py and bench.py: the paper's bases
 # --model of train.py and bench.py: the toy, the two bases, their tiny random-weight models, LTX-2 at size (random)
-MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), "ltx2-random")
+MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), *(f"{m}-random" for m in REAL_MODELS))
 
 
 def cannot_run_here(model: str, judge: str = "toy") -> str | None:
@@ -1199,6 +1251,9 @@ def cannot_run_here(model: str, judge: str = "toy") -> str | None:
     if model == "ltx2-random" and not torch.cuda.is_available():
         return ("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
                 "encoder): it needs a CUDA GPU, and there is none here")
+    if model == "hunyuan15-random" and not torch.cuda.is_available():
+        return ("--model hunyuan15-random builds HunyuanVideo-1.5 at its real size (about 35 GB of bf16 weights with "
+                "its encoders): it needs a CUDA GPU, and there is none here")
     if judge == "qwen-vl-random" and not torch.cuda.is_available():
         return ("--judge qwen-vl-random builds Qwen3-VL-8B at its real size (17.5 GB of bf16 weights): it needs a "
                 "CUDA GPU, and there is none here")

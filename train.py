@@ -182,7 +182,8 @@ class Args:
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
     ltx2-tiny, hunyuan15-tiny (random-weight models of the real classes, for checking the real path on a CPU) |
-    ltx2-random (LTX-2 at its real size with random weights, on a GPU: a step's seconds and memory, nothing more)"""
+    ltx2-random, hunyuan15-random (the real sizes with random weights, on a GPU: a step's seconds and memory,
+    nothing more)"""
     model_path: str = ""
     """--model ltx2 / hunyuan15: a local diffusers directory of the model (transformer/, vae/, text_encoder/, ...)"""
     dataset: str = ""
@@ -383,8 +384,8 @@ def parse_args(argv=None) -> Args:
     if args.offload_judge and args.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if args.offload_text and args.model == "toy":
-        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 / ltx2-random and the "
-                "-tiny ones)")
+        p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 and their -tiny and "
+                "-random stand-ins)")
     if args.eval_n > 200 and not args.eval_dataset:
         p.error("--eval_n must be at most 200 (the toy bench's size)")
     if args.eval_dataset and args.stage != "rl":
@@ -1133,8 +1134,8 @@ def load_base(args: Args):
     if args.model.endswith("-tiny"):
         model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
         model = model.to("cuda") if cuda else model
-    elif args.model == "ltx2-random":   # built on the GPU directly, in bf16
-        model = models.LTX2Video.random(world.VOCAB + ["[", "]:"], seed=args.seed)
+    elif args.model.endswith("-random"):   # real sizes, built on the GPU directly, in bf16
+        model = REAL_MODELS[args.model[:-len("-random")]].random(world.VOCAB + ["[", "]:"], seed=args.seed)
     else:
         model = REAL_MODELS[args.model].from_pretrained(args.model_path, device="cuda" if cuda else "cpu")
     if args.grad_checkpoint:       # recomputed in the backward pass: only with gradients on, so sampling is unchanged

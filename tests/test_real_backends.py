@@ -209,6 +209,23 @@ def test_ltx2_random_has_ltx2_19bs_sizes():
         assert r.returncode == 2 and "needs a CUDA GPU" in r.stderr    # this machine has none
 
 
+def test_hunyuan15_random_has_hunyuanvideo15_480ps_sizes():
+    """--model hunyuan15-random builds HunyuanVideo-1.5 480p i2v's components, counted on the meta device: the
+    transformer 8.33B parameters, Qwen2.5-VL-7B's text model 7.07B, ByT5-small's encoder 0.22B, SigLIP-so400m 0.43B,
+    the VAE 1.26B; at Table 3's 121 frames of 480 x 848 the state is 31 latent frames of 30 x 53 with 32 channels
+    (the VAE: 4x in time, 16x in space), 49,290 tokens."""
+    m = models.HunyuanVideo15.random(world.VOCAB + ["[", "]:"], device="meta")
+    count = {k: sum(p.numel() for p in getattr(m, k).parameters()) / 1e9
+             for k in ("transformer", "text_encoder", "text_encoder_2", "image_encoder", "vae")}
+    assert count == pytest.approx({"transformer": 8.33, "text_encoder": 7.07, "text_encoder_2": 0.22,
+                                   "image_encoder": 0.43, "vae": 1.26}, abs=0.005)
+    assert m.latent_shape() == (32, 31, 30, 53) and 31 * 30 * 53 == 49290
+    assert {p.dtype for p in m.parameters()} == {torch.bfloat16} and torch.get_default_dtype() == torch.float32
+    for script in ("train.py", "bench.py"):
+        r = run(script, "--model", "hunyuan15-random")
+        assert r.returncode == 2 and "needs a CUDA GPU" in r.stderr    # this machine has none
+
+
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
 def test_gradient_checkpointing_recomputes_and_gives_the_same_gradients(cls):
     """train.py --grad_checkpoint: the transformer's blocks run again in the backward pass instead of keeping their
