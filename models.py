@@ -716,19 +716,35 @@ def _require(*packages: str) -> None:
                           f"-r requirements-real.txt")
 
 
-def _word_tokenizer(words: list[str]):
-    """A word-level tokenizer over `words` with Gemma's special tokens, built in-process (nothing can be
-    downloaded): the text path of LTX2Video.tiny and LTX2Video.random."""
+def word_tokenizer(words: list[str], specials=("<pad>", "<eos>", "<bos>", "<unk>"), punctuation: bool = False,
+                   **named):
+    """A word-level tokenizer over `words`, ids in the order `specials` then the other words sorted, built
+    in-process (nothing can be downloaded): the text path of the tiny and random real models (Gemma's specials by
+    default) and of the VLM judge's (reward.VLMJudge). punctuation: split punctuation off words too, not only at
+    spaces. `named`: the special tokens by role (pad_token=..., ...; default: those of `specials` among <pad>,
+    <eos>, <bos>, <unk>)."""
     from tokenizers import Tokenizer as HFTokenizer
     from tokenizers import models as tok_models
     from tokenizers import pre_tokenizers
     from transformers import PreTrainedTokenizerFast
-    specials = ["<pad>", "<eos>", "<bos>", "<unk>"]
-    vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
+    vocab = {w: i for i, w in enumerate(list(specials) + sorted(set(words) - set(specials)))}
     tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
-    tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
-    return PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>", bos_token="<bos>",
-                                   unk_token="<unk>")
+    tok.pre_tokenizer = pre_tokenizers.Whitespace() if punctuation else pre_tokenizers.WhitespaceSplit()
+    named = named or {f"{s[1:-1]}_token": s for s in specials if s in ("<pad>", "<eos>", "<bos>", "<unk>")}
+    return PreTrainedTokenizerFast(tokenizer_object=tok, **named)
+
+
+@contextlib.contextmanager
+def built_on(device, dtype):
+    """Modules made inside this block are made directly on `device` in `dtype` (a real size's weights never pass
+    through float32 on the CPU); the default dtype is restored after it."""
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        with torch.device(device):
+            yield
+    finally:
+        torch.set_default_dtype(default)
 
 
 def _load_part(kind, path: str, subfolder: str, dtype, device):
@@ -861,7 +877,7 @@ class LTX2Video(nn.Module):
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
         from transformers import Gemma3ForCausalLM, Gemma3TextConfig
-        tokenizer = _word_tokenizer(words)
+        tokenizer = word_tokenizer(words)
         torch.manual_seed(seed)
         text = Gemma3ForCausalLM(Gemma3TextConfig(vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64,
                                                   num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1,
@@ -904,21 +920,16 @@ class LTX2Video(nn.Module):
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
         from transformers import Gemma3ForCausalLM, Gemma3TextConfig
-        tokenizer = _word_tokenizer(words)
+        tokenizer = word_tokenizer(words)
         torch.manual_seed(seed)
-        default_dtype = torch.get_default_dtype()
-        torch.set_default_dtype(dtype)
-        try:
-            with torch.device(device):
-                text = Gemma3ForCausalLM(Gemma3TextConfig(
-                    vocab_size=262208, hidden_size=3840, intermediate_size=15360, num_hidden_layers=48,
-                    num_attention_heads=16, num_key_value_heads=8, head_dim=256, query_pre_attn_scalar=256,
-                    sliding_window=1024, max_position_embeddings=131072))
-                connectors = LTX2TextConnectors()                 # reads Gemma's 48 + 1 hidden states
-                transformer = LTX2VideoTransformer3DModel()
-                vae = AutoencoderKLLTX2Video(spatial_compression_ratio=32, temporal_compression_ratio=8)
-        finally:
-            torch.set_default_dtype(default_dtype)
+        with built_on(device, dtype):
+            text = Gemma3ForCausalLM(Gemma3TextConfig(
+                vocab_size=262208, hidden_size=3840, intermediate_size=15360, num_hidden_layers=48,
+                num_attention_heads=16, num_key_value_heads=8, head_dim=256, query_pre_attn_scalar=256,
+                sliding_window=1024, max_position_embeddings=131072))
+            connectors = LTX2TextConnectors()                 # reads Gemma's 48 + 1 hidden states
+            transformer = LTX2VideoTransformer3DModel()
+            vae = AutoencoderKLLTX2Video(spatial_compression_ratio=32, temporal_compression_ratio=8)
         return cls(transformer, vae, text, tokenizer, connectors, frames, height, width)
 
     # -- LoRA (peft through diffusers' add_adapter) ---------------------------------------------------------------
@@ -1070,21 +1081,12 @@ class HunyuanVideo15(nn.Module):
 
     @staticmethod
     def _word_tokenizer(words: list[str]):
-        """A word-level tokenizer over `words` whose chat template keeps only the user turn, so nothing is cropped
-        (Qwen2.5-VL's own cannot be downloaded here). Returns (tokenizer, vocabulary size)."""
-        from tokenizers import Tokenizer as HFTokenizer
-        from tokenizers import models as tok_models
-        from tokenizers import pre_tokenizers
-        from transformers import PreTrainedTokenizerFast
-        specials = ["<pad>", "<eos>", "<unk>"]
-        vocab = {w: i for i, w in enumerate(specials + sorted(set(words) - set(specials)))}
-        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
-        tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
-        tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="<eos>",
-                                            unk_token="<unk>")
+        """models.word_tokenizer with a chat template that keeps only the user turn, so nothing is cropped
+        (Qwen2.5-VL's own tokenizer cannot be downloaded here)."""
+        tokenizer = word_tokenizer(words, specials=("<pad>", "<eos>", "<unk>"))
         tokenizer.chat_template = ("{% for m in messages %}{% if m['role'] == 'user' %}{{ m['content'] }}{% endif %}"
                                    "{% endfor %}")
-        return tokenizer, len(vocab)
+        return tokenizer
 
     @classmethod
     def tiny(cls, words: list[str], frames: int = 5, height: int = 32, width: int = 32, seed: int = 0,
@@ -1096,11 +1098,11 @@ class HunyuanVideo15(nn.Module):
         from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
         from transformers import (ByT5Tokenizer, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
                                   SiglipVisionConfig, SiglipVisionModel, T5Config, T5EncoderModel)
-        tokenizer, n_vocab = cls._word_tokenizer(words)
+        tokenizer = cls._word_tokenizer(words)
         torch.manual_seed(seed)
         text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
-            vocab_size=n_vocab, hidden_size=16, intermediate_size=16, num_hidden_layers=3, num_attention_heads=2,
-            num_key_value_heads=2, rope_theta=1e6,
+            vocab_size=len(tokenizer.get_vocab()), hidden_size=16, intermediate_size=16, num_hidden_layers=3,
+            num_attention_heads=2, num_key_value_heads=2, rope_theta=1e6,
             rope_scaling={"mrope_section": [1, 1, 2], "rope_type": "default", "type": "default"}))
         byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=32, d_kv=8, d_ff=32, num_layers=1, num_heads=2))
         siglip = SiglipVisionModel(SiglipVisionConfig(hidden_size=12, intermediate_size=16, num_hidden_layers=1,
@@ -1137,25 +1139,20 @@ class HunyuanVideo15(nn.Module):
         from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
         from transformers import (ByT5Tokenizer, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
                                   SiglipVisionConfig, SiglipVisionModel, T5Config, T5EncoderModel)
-        tokenizer, _ = cls._word_tokenizer(words)
+        tokenizer = cls._word_tokenizer(words)
         torch.manual_seed(seed)
-        default_dtype = torch.get_default_dtype()
-        torch.set_default_dtype(dtype)
-        try:
-            with torch.device(device):
-                text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
-                    vocab_size=152064, hidden_size=3584, intermediate_size=18944, num_hidden_layers=28,
-                    num_attention_heads=28, num_key_value_heads=4, rope_theta=1e6, max_position_embeddings=128000,
-                    rope_scaling={"mrope_section": [16, 24, 24], "rope_type": "default", "type": "default"}))
-                byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=1472, d_kv=64, d_ff=3584, num_layers=12,
-                                               num_heads=6, feed_forward_proj="gated-gelu"))
-                siglip = SiglipVisionModel(SiglipVisionConfig(hidden_size=1152, intermediate_size=4304,
-                                                              num_hidden_layers=27, num_attention_heads=16,
-                                                              image_size=384, patch_size=14))
-                transformer = HunyuanVideo15Transformer3DModel()
-                vae = AutoencoderKLHunyuanVideo15()
-        finally:
-            torch.set_default_dtype(default_dtype)
+        with built_on(device, dtype):
+            text = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
+                vocab_size=152064, hidden_size=3584, intermediate_size=18944, num_hidden_layers=28,
+                num_attention_heads=28, num_key_value_heads=4, rope_theta=1e6, max_position_embeddings=128000,
+                rope_scaling={"mrope_section": [16, 24, 24], "rope_type": "default", "type": "default"}))
+            byt5 = T5EncoderModel(T5Config(vocab_size=384, d_model=1472, d_kv=64, d_ff=3584, num_layers=12,
+                                           num_heads=6, feed_forward_proj="gated-gelu"))
+            siglip = SiglipVisionModel(SiglipVisionConfig(hidden_size=1152, intermediate_size=4304,
+                                                          num_hidden_layers=27, num_attention_heads=16,
+                                                          image_size=384, patch_size=14))
+            transformer = HunyuanVideo15Transformer3DModel()
+            vae = AutoencoderKLHunyuanVideo15()
         return cls(transformer, vae, text, tokenizer, byt5, ByT5Tokenizer(), siglip,
                    SiglipImageProcessorPil(size={"height": 384, "width": 384}), frames, height, width,
                    max_sequence_length=1000, crop_start=0, byt5_max_length=256)

@@ -329,28 +329,22 @@ class VLMJudge:
 
     @staticmethod
     def _word_tokenizer(words: list[str]):
-        """A word-level tokenizer over the prompts' words and `words`, with Qwen's special tokens and "Yes" / "No" /
-        "0" / "1" as single tokens (Qwen's own cannot be downloaded here). Returns (tokenizer, vocab)."""
+        """models.word_tokenizer over the prompts' words and `words`, with Qwen's special tokens and "Yes" / "No" /
+        "0" / "1" as single tokens (Qwen's own cannot be downloaded here)."""
         import models
         models._require("transformers", "tokenizers")
-        from tokenizers import Tokenizer as HFTokenizer
-        from tokenizers import models as tok_models
         from tokenizers import pre_tokenizers
-        from transformers import PreTrainedTokenizerFast
         specials = ["<pad>", "<unk>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
                     "<|image_pad|>", "<|video_pad|>"]
         prompt_words = " ".join([TASK_REWARD_PROMPT, CONSISTENCY_REWARD_PROMPT, BENCH_TASK_PROMPT, BENCH_AGENT_PROMPT,
                                  BENCH_CONSISTENCY_PROMPT, " ".join(words), "user assistant Yes No 0 1"])
-        pre = pre_tokenizers.Whitespace()
-        toks = sorted({w for w, _ in pre.pre_tokenize_str(prompt_words)} | {"\n"})
-        vocab = {w: i for i, w in enumerate(specials + [w for w in toks if w not in specials])}
-        tok = HFTokenizer(tok_models.WordLevel(vocab, unk_token="<unk>"))
-        tok.pre_tokenizer = pre
-        return PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", unk_token="<unk>",
-                                       additional_special_tokens=specials[2:]), vocab
+        toks = {w for w, _ in pre_tokenizers.Whitespace().pre_tokenize_str(prompt_words)} | {"\n"}
+        return models.word_tokenizer(sorted(toks), specials, punctuation=True, pad_token="<pad>", unk_token="<unk>",
+                                     additional_special_tokens=specials[2:])
 
     @staticmethod
-    def _special_ids(vocab: dict) -> dict:
+    def _special_ids(tokenizer) -> dict:
+        vocab = tokenizer.get_vocab()
         return dict(image_token_id=vocab["<|image_pad|>"], video_token_id=vocab["<|video_pad|>"],
                     vision_start_token_id=vocab["<|vision_start|>"], vision_end_token_id=vocab["<|vision_end|>"])
 
@@ -359,17 +353,18 @@ class VLMJudge:
         """A random-weight Qwen3-VL of the real classes for CPU tests (text hidden 32, 2 layers; vision depth 2)."""
         import torch
         from transformers import Qwen2VLImageProcessorPil, Qwen3VLConfig, Qwen3VLForConditionalGeneration
-        tokenizer, vocab = cls._word_tokenizer(words)
+        tokenizer = cls._word_tokenizer(words)
         torch.manual_seed(seed)
         cfg = Qwen3VLConfig(
-            text_config=dict(vocab_size=len(vocab), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                             num_attention_heads=2, num_key_value_heads=1, head_dim=16, max_position_embeddings=4096,
+            text_config=dict(vocab_size=len(tokenizer.get_vocab()), hidden_size=32, intermediate_size=64,
+                             num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1, head_dim=16,
+                             max_position_embeddings=4096,
                              rope_parameters={"rope_type": "default", "rope_theta": 10000.0, "mrope_section": [2, 1, 1],
                                               "mrope_interleaved": True}),
             vision_config=dict(depth=2, hidden_size=32, intermediate_size=64, num_heads=2, patch_size=16,
                                out_hidden_size=32, spatial_merge_size=2, temporal_patch_size=2,
                                num_position_embeddings=64, deepstack_visual_indexes=[1]),
-            **cls._special_ids(vocab))
+            **cls._special_ids(tokenizer))
         proc = Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2, min_pixels=32 * 32,
                                         max_pixels=64 * 64)
         return cls(Qwen3VLForConditionalGeneration(cfg), tokenizer, proc, frames=4, batch=4)
@@ -387,7 +382,9 @@ class VLMJudge:
         (_word_tokenizer), so prompts are fewer tokens than under Qwen's. Built directly on `device` in bf16."""
         import torch
         from transformers import Qwen2VLImageProcessorPil, Qwen3VLConfig, Qwen3VLForConditionalGeneration
-        tokenizer, vocab = cls._word_tokenizer(words)
+
+        import models
+        tokenizer = cls._word_tokenizer(words)
         torch.manual_seed(seed)
         cfg = Qwen3VLConfig(
             text_config=dict(vocab_size=151936, hidden_size=4096, intermediate_size=12288, num_hidden_layers=36,
@@ -398,14 +395,9 @@ class VLMJudge:
             vision_config=dict(depth=27, hidden_size=1152, intermediate_size=4304, num_heads=16, patch_size=16,
                                out_hidden_size=4096, spatial_merge_size=2, temporal_patch_size=2,
                                num_position_embeddings=2304, deepstack_visual_indexes=[8, 16, 24]),
-            tie_word_embeddings=False, **cls._special_ids(vocab))
-        default_dtype = torch.get_default_dtype()
-        torch.set_default_dtype(dtype or torch.bfloat16)
-        try:
-            with torch.device(device):
-                model = Qwen3VLForConditionalGeneration(cfg)
-        finally:
-            torch.set_default_dtype(default_dtype)
+            tie_word_embeddings=False, **cls._special_ids(tokenizer))
+        with models.built_on(device, dtype or torch.bfloat16):
+            model = Qwen3VLForConditionalGeneration(cfg)
         proc = Qwen2VLImageProcessorPil(patch_size=16, temporal_patch_size=2, merge_size=2, min_pixels=65536,
                                         max_pixels=16777216)
         return cls(model, tokenizer, proc, device=device)
