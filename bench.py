@@ -618,7 +618,7 @@ def main(argv=None):
     p.add_argument("--offload_text", action="store_true", help="a real model: keep its text encoder in CPU memory "
                    "between encodings (less GPU memory, the same videos)")
     p.add_argument("--offload_judge", action="store_true", help="a VLM judge: keep its weights in CPU memory "
-                   "between the batches it judges (less GPU memory, the same judgments)")
+                   "between the prompts it judges (less GPU memory, the same judgments)")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=None, help="bench pairs to evaluate (1..200; default 200, with --gallery "

@@ -1238,20 +1238,22 @@ class HunyuanVideo15(nn.Module):
 
 
 REAL_MODELS = {"ltx2": LTX2Video, "hunyuan15": HunyuanVideo15}   # --model of train.py and bench.py: the paper's bases
-# --model of train.py and bench.py: the toy, the two bases, their tiny random-weight models, LTX-2 at size (random)
+# --model of train.py and bench.py: the toy, the two bases, their tiny random-weight models, both at size (random)
 MODEL_CHOICES = ("toy", *REAL_MODELS, *(f"{m}-tiny" for m in REAL_MODELS), *(f"{m}-random" for m in REAL_MODELS))
+
+
+# what --model / --judge builds at a real size: a GPU is needed
+AT_REAL_SIZE = {"ltx2-random": "LTX-2 at its real size (about 67 GB of bf16 weights with its text encoder)",
+                "hunyuan15-random": "HunyuanVideo-1.5 at its real size (about 35 GB of bf16 weights with its encoders)",
+                "qwen-vl-random": "Qwen3-VL-8B at its real size (17.5 GB of bf16 weights)"}
 
 
 def cannot_run_here(model: str, judge: str = "toy") -> str | None:
     """Why this machine cannot run --model `model` with --judge `judge` (the one line train.py and bench.py exit
     with), or None."""
-    if model == "ltx2-random" and not torch.cuda.is_available():
-        return ("--model ltx2-random builds LTX-2 at its real size (about 67 GB of bf16 weights with its text "
-                "encoder): it needs a CUDA GPU, and there is none here")
-    if model == "hunyuan15-random" and not torch.cuda.is_available():
-        return ("--model hunyuan15-random builds HunyuanVideo-1.5 at its real size (about 35 GB of bf16 weights with "
-                "its encoders): it needs a CUDA GPU, and there is none here")
-    if judge == "qwen-vl-random" and not torch.cuda.is_available():
-        return ("--judge qwen-vl-random builds Qwen3-VL-8B at its real size (17.5 GB of bf16 weights): it needs a "
-                "CUDA GPU, and there is none here")
+    if torch.cuda.is_available():
+        return None
+    for flag, name in (("--model", model), ("--judge", judge)):
+        if name in AT_REAL_SIZE:
+            return f"{flag} {name} builds {AT_REAL_SIZE[name]}: it needs a CUDA GPU, and there is none here"
     return None

@@ -403,8 +403,8 @@ class VLMJudge:
         return cls(model, tokenizer, proc, device=device)
 
     def offload(self) -> None:
-        """Keep the VLM's weights in CPU memory (pinned where there is a GPU) and copy them to self.device for each
-        batch it judges (train.py / bench.py --offload_judge; models.offload): they are not on the GPU during the
+        """Keep the VLM's weights in CPU memory (pinned where there is a GPU) and copy them to self.device each
+        time it judges a set of videos, once for all its batches (train.py / bench.py --offload_judge; models.offload): they are not on the GPU during the
         video model's update, where a step peaks."""
         import models
         models.offload(self.model)
@@ -423,30 +423,31 @@ class VLMJudge:
         return f"<|im_start|>user\n{vision}{prompt}<|im_end|>\n<|im_start|>assistant\n"
 
     def logits(self, videos, prompts: list[str]) -> np.ndarray:
-        """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches."""
+        """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches.
+        An offloaded judge (--offload_judge) visits its device once for all the batches of the call."""
         import torch
 
         import models
         out = []
-        for s in range(0, len(prompts), self.batch):
-            vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
-            frames = [self._frames(v) for v in vids]
-            img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
-            per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
-            texts, k = [], 0
-            for fs, p in zip(frames, ps):
-                texts.append(self._chat(per_image[k:k + len(fs)], p))
-                k += len(fs)
-            self.tokenizer.padding_side = "left"
-            enc = self.tokenizer(texts, return_tensors="pt", padding=True)
-            mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
-            with torch.no_grad(), models.visiting(self.model, self.device):   # no copy unless offloaded
-                dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
+        with torch.no_grad(), models.visiting(self.model, self.device):   # no copy unless offloaded
+            dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
+            for s in range(0, len(prompts), self.batch):
+                vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
+                frames = [self._frames(v) for v in vids]
+                img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
+                per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
+                texts, k = [], 0
+                for fs, p in zip(frames, ps):
+                    texts.append(self._chat(per_image[k:k + len(fs)], p))
+                    k += len(fs)
+                self.tokenizer.padding_side = "left"
+                enc = self.tokenizer(texts, return_tensors="pt", padding=True)
+                mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
                 o = self.model(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
                                pixel_values=img["pixel_values"].to(dev, self.model.dtype),
                                image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),
                                logits_to_keep=1)   # the next token's logits only: a video is thousands of tokens
-            out.append(o.logits[:, -1].float().cpu().numpy())
+                out.append(o.logits[:, -1].float().cpu().numpy())
         return np.concatenate(out)
 
     def yes_no(self, images, prompt: str) -> list:

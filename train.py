@@ -199,7 +199,7 @@ class Args:
     judge_path: str = ""
     """--judge qwen-vl: a local transformers directory of the VLM"""
     offload_judge: bool = False
-    """a VLM judge: keep its weights in CPU memory and copy them to the GPU for each batch it judges, so that they
+    """a VLM judge: keep its weights in CPU memory and copy them to the GPU each time it judges a set of videos, so that they
     are not on the GPU during the update, where a step peaks (Qwen3-VL-8B: 16.3 GiB); the same judgments"""
     # ---- rl (Alg. 1: the whole method) ----
     trainer: str = "awm"

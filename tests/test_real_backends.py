@@ -435,7 +435,7 @@ def test_tiny_vlm_judge_batches_like_single_items():
 
 
 def test_an_offloaded_judge_visits_for_each_batch_and_gives_the_same_logits():
-    """--offload_judge: the VLM's weights live in CPU memory and visit the judge's device for each batch it judges,
+    """--offload_judge: the VLM's weights live in CPU memory and visit the judge's device for each call that judges,
     then are their CPU originals again. As for the text encoder, a cast to float64 stands in for the copy to a GPU:
     inside the forward every weight is a new float64 tensor, after it the original; the logits are the resident
     judge's (to float32's precision)."""
