@@ -24,6 +24,7 @@ Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import re
 from dataclasses import dataclass, field
@@ -451,7 +452,23 @@ BENCH_SEED = 2606_12072
 
 
 def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None) -> list[Pair]:
-    """n task pairs, each on its own random scene (scenes in `exclude` are skipped)."""
+    """n task pairs, each on its own random scene (scenes in `exclude` are skipped). Pair i's description is wrong
+    with probability `error_rate`, drawn from its own generator (seed, i), so the scenes and tasks do not depend on
+    the error rate and a description wrong at one rate stays wrong at every higher one. The error-free pairs are
+    made once per (n, seed, exclude) and each error rate is laid over them: a run reads the bench at its error
+    rate and the bench's scenes (error rate 0) without making the 200 scenes twice."""
+    out = []
+    for i, p in enumerate(_error_free_pairs(n, seed, frozenset(exclude) if exclude else None)):
+        err_rng = np.random.default_rng([seed, i])
+        if err_rng.random() < error_rate:   # the toy VLM's mistake (propose_tasks draws it the same way)
+            plan_vlm, err = corrupt(p.scene, p.plan_oracle, err_rng)
+            p = dataclasses.replace(p, d_vlm=describe(p.scene, plan_vlm), plan_vlm=plan_vlm, error=err)
+        out.append(p)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _error_free_pairs(n: int, seed: int, exclude: frozenset | None) -> tuple:
     rng = np.random.default_rng(seed)
     pairs = []
     while len(pairs) < n:
@@ -459,10 +476,11 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
         if exclude and scene_key(scene) in exclude:
             continue
         frame0 = render(scene, simulate(scene, Plan(None)))[0]
-        proposals = propose_tasks(frame0, rng, 1, error_rate, np.random.default_rng([seed, len(pairs)]))
+        # error rate 0; a generator of its own takes propose_tasks' error draw, so `rng` draws what it always did
+        proposals = propose_tasks(frame0, rng, 1, 0.0, np.random.default_rng([seed, len(pairs)]))
         for sc, task, d, d_or, p, p_or, err in proposals:
             pairs.append(Pair(sc, task, d, d_or, p, p_or, err, frame0))
-    return pairs
+    return tuple(pairs)
 
 
 def bench_pairs(error_rate: float, n: int = 200) -> list[Pair]:

@@ -29,6 +29,23 @@ def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
     assert videos.shape == (64, world.F, world.H, world.W, 3)
 
 
+def test_error_rates_are_laid_over_one_set_of_pairs():
+    """make_pairs makes the error-free pairs once and lays each error rate over them. That gives what drawing each
+    pair's error inside propose_tasks gives, and a description wrong at one rate stays wrong at every higher one."""
+    def direct(n, seed, e):   # the one-pass form: propose_tasks draws the error from the pair's own generator
+        rng, pairs = np.random.default_rng(seed), []
+        while len(pairs) < n:
+            scene = world.random_scene(rng)
+            frame0 = world.render(scene, world.simulate(scene, Plan(None)))[0]
+            pairs += world.propose_tasks(frame0, rng, 1, e, np.random.default_rng([seed, len(pairs)]))
+        return [(task.text, d, err) for _, task, d, _, _, _, err in pairs]
+
+    for e in (0.0, 0.3, 0.7):
+        assert [(p.task.text, p.d_vlm, p.error) for p in world.make_pairs(40, 5, e)] == direct(40, 5, e)
+    wrong = lambda e: {i for i, p in enumerate(world.make_pairs(40, 5, e)) if p.error}   # noqa: E731
+    assert wrong(0.0) == set() and wrong(0.3) and wrong(0.3) <= wrong(0.7)
+
+
 def test_motion_table_is_simulate_and_plan_is_valid_for_every_motion():
     """The planner's vectorised table (world.motion_table) agrees with the one-plan functions it stands in for."""
     rng = np.random.default_rng(0)
