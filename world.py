@@ -400,6 +400,12 @@ def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, s
     return plan, ""
 
 
+def vlm_mistake(scene: Scene, plan: Plan, error_rate: float, err_rng: np.random.Generator) -> tuple[Plan, str]:
+    """The plan the toy VLM describes for the solution `plan`: with probability `error_rate` a corrupted one
+    (corrupt), else `plan` itself. Returns (plan, error kind or "")."""
+    return corrupt(scene, plan, err_rng) if err_rng.random() < error_rate else (plan, "")
+
+
 def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, error_rate: float = 0.0,
                   err_rng: np.random.Generator | None = None):
     """The toy VLM g(I) of Alg. 1 line 4: read the first frame, propose up to `n` feasible tasks (one family drawn
@@ -422,7 +428,7 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
         fam = sorted(by_family)[rng.integers(len(by_family))]
         task, sols = by_family[fam][rng.integers(len(by_family[fam]))]
         plan = canonical_solution(sols)
-        plan_vlm, err = corrupt(scene, plan, err_rng) if err_rng.random() < error_rate else (plan, "")
+        plan_vlm, err = vlm_mistake(scene, plan, error_rate, err_rng)
         out.append((scene, task, describe(scene, plan_vlm), describe(scene, plan), plan_vlm, plan, err))
     return out
 
@@ -459,9 +465,8 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
     rate and the bench's scenes (error rate 0) without making the 200 scenes twice."""
     out = []
     for i, p in enumerate(_error_free_pairs(n, seed, frozenset(exclude) if exclude else None)):
-        err_rng = np.random.default_rng([seed, i])
-        if err_rng.random() < error_rate:   # the toy VLM's mistake (propose_tasks draws it the same way)
-            plan_vlm, err = corrupt(p.scene, p.plan_oracle, err_rng)
+        plan_vlm, err = vlm_mistake(p.scene, p.plan_oracle, error_rate, np.random.default_rng([seed, i]))
+        if err:
             p = dataclasses.replace(p, d_vlm=describe(p.scene, plan_vlm), plan_vlm=plan_vlm, error=err)
         out.append(p)
     return out
