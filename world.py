@@ -24,10 +24,9 @@ Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -467,7 +466,7 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
     for i, p in enumerate(_error_free_pairs(n, seed, frozenset(exclude) if exclude else None)):
         plan_vlm, err = vlm_mistake(p.scene, p.plan_oracle, error_rate, np.random.default_rng([seed, i]))
         if err:
-            p = dataclasses.replace(p, d_vlm=describe(p.scene, plan_vlm), plan_vlm=plan_vlm, error=err)
+            p = replace(p, d_vlm=describe(p.scene, plan_vlm), plan_vlm=plan_vlm, error=err)
         out.append(p)
     return out
 
