@@ -247,6 +247,9 @@ class Args:
     every README result unless it says otherwise)"""
     executor_ema_every: int = 1
     """steps between updates of --executor_ema (Tab. 3: 1 for LTX-2, 4 for HunyuanVideo-1.5)"""
+    executor_ema_schedule: str = "constant"
+    """the decay of --executor_ema over its updates (Tab. 3: constant for LTX-2, power for HunyuanVideo-1.5):
+    constant | power (a warm-up: see executor_ema_decay)"""
     clip_range: float = 0.2
     """PPO clip of the ratio (flow-grpo, awm); binds only when inner_epochs > 1"""
     kl_beta: float = 0.0
@@ -321,6 +324,7 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
+                          ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
                           ("judge", reward.JUDGE_CHOICES)):
@@ -400,6 +404,8 @@ def parse_args(argv=None) -> Args:
         p.error("--executor_ema must lie in [0, 1) (0: no EMA)")
     if args.executor_ema and args.stage != "rl":
         p.error("--executor_ema averages the rl stage's Executor: it needs --stage rl")
+    if args.executor_ema_schedule != "constant" and not args.executor_ema:
+        p.error("--executor_ema_schedule sets the decay of --executor_ema: it needs --executor_ema > 0")
     if args.point_weight < 0 or (args.point_weight and not args.relate):
         p.error("--point_weight must be >= 0 and supervises Relate's heads: it needs --relate")
     if args.point_goal_only and not args.point_weight:
@@ -478,6 +484,14 @@ def ema_step(ema, params, decay: float) -> None:
     with torch.no_grad():
         for e, p in zip(ema, params):
             e.lerp_(p, 1 - decay)
+
+
+def executor_ema_decay(decay: float, schedule: str, done: int) -> float:
+    """The decay of the Executor's EMA (Tab. 3) at an update after `done` earlier ones: `decay` itself under the
+    constant schedule; under "power" a warm-up, min(decay, 1 - (1 + done)^(-2/3)) -- 0 at the first update (the
+    average starts as the trained weights), 0.37 at the second, 0.9 from the 32nd. Table 3 names the schedule, not
+    its formula: this is the power warm-up of diffusers' EMAModel (inv_gamma 1, power 2/3)."""
+    return decay if schedule == "constant" else min(decay, 1 - (1 + done) ** (-2 / 3))
 
 
 @contextlib.contextmanager
@@ -1287,7 +1301,8 @@ def rl_stage(args: Args) -> dict:
             raise TrainingFault(f"{e}; stopping -- {last}") from None
         executor_updates = step - (step // args.alternate if args.alternate else 0)   # Alg. 2's rounds are phi's
         if ema is not None and not rec.get("demo_round") and executor_updates % args.executor_ema_every == 0:
-            ema_step(ema, params, args.executor_ema)
+            done = executor_updates // args.executor_ema_every - 1   # EMA updates before this one
+            ema_step(ema, params, executor_ema_decay(args.executor_ema, args.executor_ema_schedule, done))
         rec = {"step": step, **rec, "step_seconds": time.time() - t0}
         if torch.cuda.is_available():   # the step's high-water mark of tensors on this process's GPU, GiB
             rec["gpu_peak_gb"] = torch.cuda.max_memory_allocated() / 2 ** 30

@@ -239,6 +239,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--executor_ema", "1"], "--executor_ema must lie in [0, 1)"),
                       (["--executor_ema_every", "0"], "--executor_ema_every must be >= 1"),
                       (["--stage", "distill", "--executor_ema", "0.9"], "--executor_ema averages the rl stage's"),
+                      (["--executor_ema_schedule", "power"], "--executor_ema_schedule sets the decay"),
+                      (["--executor_ema", "0.9", "--executor_ema_schedule", "cosine"], "--executor_ema_schedule: unknown"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
@@ -402,6 +404,15 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
     want = [x.clone() for x in alt[2][1]]
     train.ema_step(want, alt[3][0], 0.5)
     assert same(alt[3][1], want)
+    # --executor_ema_schedule power (Tab. 3's HunyuanVideo-1.5 column): decay 0 at the first update, so the average
+    # is the trained weights; then min(d, 1 - 2^(-2/3)) = 0.37 at the second
+    assert [train.executor_ema_decay(0.9, "power", j) for j in (0, 30, 31)] == [0.0, 1 - 31 ** (-2 / 3), 0.9]
+    assert train.executor_ema_decay(0.9, "constant", 0) == 0.9
+    pw, _ = run_with("power", steps=2, executor_ema=0.5, executor_ema_schedule="power")
+    assert same(pw[1][1], pw[1][0]) and not same(pw[1][1], avg[1][1])
+    want = [x.clone() for x in pw[1][1]]
+    train.ema_step(want, pw[2][0], 1 - 2 ** (-2 / 3))
+    assert same(pw[2][1], want)
 
 
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
