@@ -242,9 +242,9 @@ class Args:
     """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
     executor_ema: float = 0.0
     """Tab. 3's EMA of the Executor's LoRA weights: ema <- d ema + (1 - d) theta every --executor_ema_every steps,
-    with a constant decay d (the LTX-2 column: 0.96 every step). Evaluations, the GIF and the saved Executor use the
-    averaged weights; rollouts and updates the trained ones, as Flow-GRPO does. 0 = off (the toy's default, and
-    every README result unless it says otherwise)"""
+    with decay d (the LTX-2 column: 0.96 every step; --executor_ema_schedule power warms it up). Evaluations, the
+    GIF and the saved Executor use the averaged weights; rollouts and updates the trained ones, as Flow-GRPO does.
+    0 = off (the toy's default, and every README result unless it says otherwise)"""
     executor_ema_every: int = 1
     """steps between updates of --executor_ema (Tab. 3: 1 for LTX-2, 4 for HunyuanVideo-1.5)"""
     executor_ema_schedule: str = "constant"
