@@ -240,7 +240,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--executor_ema_every", "0"], "--executor_ema_every must be >= 1"),
                       (["--stage", "distill", "--executor_ema", "0.9"], "--executor_ema averages the rl stage's"),
                       (["--executor_ema_schedule", "power"], "--executor_ema_schedule sets the decay"),
-                      (["--executor_ema", "0.9", "--executor_ema_schedule", "cosine"], "--executor_ema_schedule: unknown"),
+                      (["--executor_ema", "0.9", "--executor_ema_schedule", "cosine"],
+                       "--executor_ema_schedule: unknown"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4")):
         err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
