@@ -133,7 +133,8 @@ class RLConfig:
     weighting: str = "ghuber"
     """AWM time weighting: uniform | t | huber | ghuber (Tab. 3: ghuber)"""
     ghuber_power: float = 0.5
-    """power p of the generalised Huber weighting (Tab. 3 does not give it; p = 0.5 is the Huber case)"""
+    """power p of the generalised Huber weighting (Tab. 3 does not give it; p = 0.5 is the Huber case; Flow-Factory,
+    a public trainer with Tab. 3's setting names, defaults to 0.25)"""
     ratio: str = "exp_first"
     """AWM ratio: exp_first (one per (sample, time), Tab. 3) | sum_first (one per sample)"""
     nft_beta: float = 1.0
