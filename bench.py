@@ -12,6 +12,8 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
           (world.instruction_form; the prompt of the README's positive control, train.py --executor_prompt)
   oracle_instruction  the error-free description in the task's form (the README's second control: c_E carries
           the right motion while the Demonstrator's D is still wrong 30% of the time)
+  oracle_direction  "[red square]: move left 2 up 1": the same without its duration (world.direction_form; the
+          README's partial control: c_E carries part of the Demonstrator's decision)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
@@ -60,11 +62,13 @@ DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in
 
 
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases (train.py's too)
-CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction")
+CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction",
+              "oracle_direction")
 PROMPT_NAMES = {"task": "T", "vlm": "the toy VLM's D", "oracle": "the error-free D", "vague": "a vague caption",
                 "empty": "an empty prompt", "goal": "T's words as a pretraining goal caption",
                 "instruction": "the toy VLM's D in the task's form",
-                "oracle_instruction": "the error-free D in the task's form"}   # each condition, as a label says it
+                "oracle_instruction": "the error-free D in the task's form",
+                "oracle_direction": "the error-free D's direction and speed in the task's form, not its duration"}   # each condition, as a label says it
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:
@@ -77,6 +81,8 @@ def prompts_for(pairs: list, condition: str) -> list[str]:
         return [world.instruction_form(p.d_vlm) for p in pairs]
     if condition == "oracle_instruction":
         return [world.instruction_form(p.d_oracle) for p in pairs]
+    if condition == "oracle_direction":
+        return [world.direction_form(p.d_oracle) for p in pairs]
     # read only the field the condition names: a real-image pair (train.load_pairs) has a task and a D, no oracle
     field = {"task": lambda p: p.task.text, "vlm": lambda p: p.d_vlm, "oracle": lambda p: p.d_oracle,
              "empty": lambda p: ""}[condition]

@@ -137,7 +137,9 @@ class Args:
     "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
     control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
     oracle_instruction (the error-free D in that form: the README's second control, where c_E carries the right
-    motion and the Demonstrator's D is still wrong at the toy VLM's error rate) | goal (T's words, and no more, as
+    motion and the Demonstrator's D is still wrong at the toy VLM's error rate) | oracle_direction (the same without
+    its duration, world.direction_form: "[red square]: move left 2 up 1" -- the partial control, README: c_E
+    carries part of the Demonstrator's decision) | goal (T's words, and no more, as
     the goal caption pretraining showed -- world.goal_caption: "red square moves to the blue circle"; the third
     control, README: does the Executor fail given T for T's information or for its unseen form?)"""
     steps: int = 100
@@ -571,7 +573,8 @@ def pretrain(args: Args) -> dict:
 
 VARIANTS = ("off", "on", "dmd", "sft", "paired")
 # Args.executor_prompt -> how the tables and plots name it; each is a bench.prompts_for condition of that name
-EXECUTOR_PROMPTS = {k: bench.PROMPT_NAMES[k] for k in ("task", "instruction", "oracle_instruction", "goal")}
+EXECUTOR_PROMPTS = {k: bench.PROMPT_NAMES[k] for k in ("task", "instruction", "oracle_instruction", "oracle_direction",
+                                                      "goal")}
 
 
 def executor_given(prompt: str) -> str:

@@ -200,6 +200,14 @@ def instruction_form(d: str) -> str:
     return f"[{m['agent'] or FIRST_PERSON}]: move {m['motion']}"
 
 
+def direction_form(d: str) -> str:
+    """instruction_form without the duration: "red square moves left 2 up 1 for 3 frames then stops" ->
+    "[red square]: move left 2 up 1". Who moves, which way and how fast, not for how long: part of D's decision.
+    The Executor's prompt in the README's partial control (train.py --executor_prompt oracle_direction), between T
+    (none of the motion) and the second control (all of it)."""
+    return re.sub(r" for \d+ frames?$", "", instruction_form(d))
+
+
 _TASK_RE = re.compile(r"^\[(?P<agent>[^\]]+)\]:\s*(?P<rest>.+)$")
 
 

@@ -290,10 +290,10 @@ def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(
     assert seen == ["instruction", "vlm"]
 
 
-@pytest.mark.parametrize("executor_prompt", ["instruction", "oracle_instruction"])
+@pytest.mark.parametrize("executor_prompt", ["instruction", "oracle_instruction", "oracle_direction"])
 def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path, monkeypatch, executor_prompt):
     """In a control's rl stage the Executor is conditioned on its prompt (the toy VLM's or the error-free D in the
-    task's form), the Demonstrator on the toy VLM's D, and the judges judge the rollouts against T."""
+    task's form, or the error-free D's direction without its duration), the Demonstrator on the toy VLM's D, and the judges judge the rollouts against T."""
     args = _args(tiny_ckpt, tmp_path, executor_prompt=executor_prompt)
     model = train.models.load_checkpoint(tiny_ckpt)[0]
     train.models.add_lora(model, args.lora_rank, args.lora_alpha)
@@ -311,7 +311,8 @@ def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path,
                   prompts=prompts)
     G = args.group_size
     field = "d_vlm" if executor_prompt == "instruction" else "d_oracle"
-    assert texts[:2] == [[train.world.instruction_form(getattr(pairs[i], field)) for i in (0, wrong)], descs]
+    form = train.world.direction_form if executor_prompt == "oracle_direction" else train.world.instruction_form
+    assert texts[:2] == [[form(getattr(pairs[i], field)) for i in (0, wrong)], descs]
     assert judged == [[t for t in tasks for _ in range(G)]]
 
 

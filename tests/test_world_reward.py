@@ -96,6 +96,19 @@ def test_instruction_form_carries_the_description_s_information(bench):
         world.instruction_form("nothing moves")
 
 
+def test_direction_form_drops_only_the_duration(bench):
+    """The partial control's prompt: the instruction form without "for k frames" -- who, which way, how fast."""
+    import models
+    tok = models.Tokenizer(world.VOCAB)
+    for p in bench:
+        form, full = world.direction_form(p.d_oracle), world.instruction_form(p.d_oracle)
+        k = full[len(form):].split()                               # ["for", k, "frame" or "frames"]
+        assert full.startswith(form + " for ") and k[2] == ("frame" if k[1] == "1" else "frames") and len(k) == 3
+        assert tok.words(form)
+    assert world.direction_form("red square moves left 2 up 1 for 3 frames then stops") == "[red square]: move left 2 up 1"
+    assert world.direction_form("camera pans down 1 for 1 frame then stops") == "[first-person view]: move down 1"
+
+
 def test_captions_in_task_words_name_the_same_motion():
     """--p_task_words: a share of pretraining captions says up/down and the camera as T does (top/bottom, first-person
     view); the rest of each caption is as before."""
