@@ -68,7 +68,8 @@ PROMPT_NAMES = {"task": "T", "vlm": "the toy VLM's D", "oracle": "the error-free
                 "empty": "an empty prompt", "goal": "T's words as a pretraining goal caption",
                 "instruction": "the toy VLM's D in the task's form",
                 "oracle_instruction": "the error-free D in the task's form",
-                "oracle_direction": "the error-free D's direction and speed in the task's form, not its duration"}   # each condition, as a label says it
+                "oracle_direction": "the error-free D's direction and speed in the task's form, not its duration",
+                }   # each condition, as a label says it
 
 
 def prompts_for(pairs: list, condition: str) -> list[str]:

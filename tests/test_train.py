@@ -293,7 +293,8 @@ def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(
 @pytest.mark.parametrize("executor_prompt", ["instruction", "oracle_instruction", "oracle_direction"])
 def test_rl_step_gives_the_executor_its_prompt_and_judges_t(tiny_ckpt, tmp_path, monkeypatch, executor_prompt):
     """In a control's rl stage the Executor is conditioned on its prompt (the toy VLM's or the error-free D in the
-    task's form, or the error-free D's direction without its duration), the Demonstrator on the toy VLM's D, and the judges judge the rollouts against T."""
+    task's form, or the error-free D's direction without its duration), the Demonstrator on the toy VLM's D, and the
+    judges judge the rollouts against T."""
     args = _args(tiny_ckpt, tmp_path, executor_prompt=executor_prompt)
     model = train.models.load_checkpoint(tiny_ckpt)[0]
     train.models.add_lora(model, args.lora_rank, args.lora_alpha)

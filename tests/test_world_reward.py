@@ -105,7 +105,8 @@ def test_direction_form_drops_only_the_duration(bench):
         k = full[len(form):].split()                               # ["for", k, "frame" or "frames"]
         assert full.startswith(form + " for ") and k[2] == ("frame" if k[1] == "1" else "frames") and len(k) == 3
         assert tok.words(form)
-    assert world.direction_form("red square moves left 2 up 1 for 3 frames then stops") == "[red square]: move left 2 up 1"
+    assert world.direction_form("red square moves left 2 up 1 for 3 frames then stops") == \
+        "[red square]: move left 2 up 1"
     assert world.direction_form("camera pans down 1 for 1 frame then stops") == "[first-person view]: move down 1"
 
 
