@@ -719,7 +719,7 @@ def main(argv=None):
         bad = [c for c in conds if c not in CONDITIONS]
         if len(conds) != 2 or bad:
             p.error(f"--handoff wants A,B with A and B among {', '.join(CONDITIONS)}; got {a.handoff!r}")
-    torch.set_num_threads(a.threads)
+    models.use_cpu(a.threads)
     judge = pairs = executor = None
     try:
         if a.real:       # the loaders train.py uses (train imports this module, so not at the top)

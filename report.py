@@ -26,7 +26,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import torch
 
 import models
 from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, KEYS, curve_band, evaluate, figure, file_digest, fmt, mean_sd,
@@ -307,7 +306,7 @@ def main(argv=None):
         except (FileNotFoundError, ValueError) as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
-    torch.set_num_threads(a.threads)
+    models.use_cpu(a.threads)
     try:
         report(a.out, a.seeds or ([0, 1] if a.quick else [0, 1, 2]), a.quick, a.jobs, a.checkpoint or "")
     except RuntimeError as e:

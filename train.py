@@ -432,7 +432,7 @@ def _field_docs(cls) -> dict:
 def seed_everything(seed: int, threads: int) -> np.random.Generator:
     random.seed(seed)
     torch.manual_seed(seed)
-    torch.set_num_threads(threads)
+    models.use_cpu(threads)
     return np.random.default_rng(seed)
 
 

@@ -6,7 +6,9 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-torch.set_num_threads(2)
+import models  # noqa: E402
+
+models.use_cpu(2)     # as the scripts do: 2 threads, and freed memory kept for reuse
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -1,10 +1,13 @@
 """models.py: text encoder, LoRA and the Demonstrator switch, checkpoints, the backend factory."""
+import sys
+
 import numpy as np
 import pytest
 import torch
 
 import models
 import world
+from conftest import run
 
 
 @pytest.fixture(scope="module")
@@ -141,6 +144,31 @@ def test_generate_is_deterministic_and_independent_of_batching(small, capsys):
     assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
     assert np.array_equal(a, b)
     assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated
+
+
+def test_use_cpu_sets_the_threads_and_leaves_the_videos_bit_for_bit(small, tmp_path):
+    """models.use_cpu changes how freed memory is kept, not what is computed: the videos of a process that never
+    called it (torch's threads set directly) equal, bit for bit, those of this one (conftest called it)."""
+    threads = torch.get_num_threads()
+    try:
+        applied = models.use_cpu(2)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    if sys.platform.startswith("linux"):
+        assert applied                          # glibc accepted every setting
+    ckpt = str(tmp_path / "small.pt")
+    models.save_checkpoint(small, ckpt)
+    code = ("import sys, numpy as np, torch, models, world; torch.set_num_threads(2); "
+            "m, _ = models.load_checkpoint(sys.argv[1]); s = world.random_scene(np.random.default_rng(2)); "
+            "f = world.render(s, world.simulate(s, world.Plan(None)))[:1].repeat(4, 0); "
+            "np.save(sys.argv[2], models.generate(m, f, ['nothing moves'] * 4, steps=3, seed=1))")
+    r = run("-c", code, ckpt, str(tmp_path / "plain.npy"))
+    assert r.returncode == 0, r.stderr
+    scene = world.random_scene(np.random.default_rng(2))
+    frame0 = world.render(scene, world.simulate(scene, world.Plan(None)))[:1].repeat(4, 0)
+    mine = models.generate(models.load_checkpoint(ckpt)[0], frame0, ["nothing moves"] * 4, steps=3, seed=1)
+    assert np.array_equal(np.load(tmp_path / "plain.npy"), mine)
 
 
 def test_generate_builds_no_autograd_graph(small):
