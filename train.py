@@ -1321,7 +1321,7 @@ def rl_stage(args: Args) -> dict:
                                                f"{rec['update_s']:.1f} update)" if "reward_s" in rec else "")
             + (f" | GPU peak {rec['gpu_peak_gb']:.1f} GiB" if "gpu_peak_gb" in rec else "")
             + f" | {_eta(loop_start, step - first + 1, args.steps - first + 1)}", flush=True)
-        if step % args.eval_every == 0 or step == args.steps:
+        if step % args.eval_every == 0 and step < args.steps:    # the last step's is the final evaluation's
             if rank0:
                 with weights_swapped(params, ema):
                     res = evaluate_executor(model, args)
@@ -1337,7 +1337,6 @@ def rl_stage(args: Args) -> dict:
     if not rank0:
         dist.destroy_process_group()
         return {}
-    logf.close()
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
     with weights_swapped(params, ema):   # the Executor that is saved and judged: the average, under --executor_ema
         if model.backend == "toy":   # LoRA folded in: the base's network and cost, loadable by bench.py
@@ -1346,8 +1345,13 @@ def rl_stage(args: Args) -> dict:
         else:                        # a real model: the LoRA weights alone (the base stays where --model_path says)
             merged = model
             models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-        final = evaluate_executor(merged, args)
+        final = evaluate_executor(merged, args)     # the last point of the curve too: the same network, merged
         write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
+    evals = [e for e in evals if e["step"] != args.steps] + [{"step": args.steps, **{k: final[k] for k in keys[:4]}}]
+    logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
+    logf.close()
+    say(f"  eval step {args.steps}: task {final['task']:.3f} agent {final['agent']:.3f} consistency "
+        f"{final['consistency']:.3f} avg {final['avg']:.3f}", flush=True)
     name = f"{fig5_setting(args)} ({args.trainer}, {given}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
