@@ -162,7 +162,8 @@ class Args:
     train_pairs: int = 512
     """(image, T, D) training pairs drawn from the toy VLM, on scenes disjoint from the bench"""
     eval_every: int = 10
-    """steps between bench evaluations"""
+    """steps between bench evaluations; the last step is always evaluated (in the rl stage by the final evaluation,
+    of the saved Executor)"""
     eval_n: int = 200
     """bench pairs per evaluation"""
     eval_cache: str = ""
