@@ -79,6 +79,12 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
     `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard).
     window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window; the README's
     flow windows). Without one the draws are the same as with window (0, 1)."""
+    k = _pick_index(xs, ts, generator, shard, window)
+    return xs[k, torch.arange(xs.shape[1], device=xs.device)].detach(), ts[k]
+
+
+def _pick_index(xs, ts, generator=None, shard=None, window=None) -> torch.Tensor:
+    """_pick_states's grid index k per sample, (B,)."""
     S, B = xs.shape[0] - 1, xs.shape[1]
     off, total = shard or (0, B)
     ks = torch.arange(S)
@@ -87,8 +93,17 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
         ks = ks[(t_grid >= window[0] - 1e-6) & (t_grid < window[1] - 1e-6)]
         if len(ks) == 0:
             raise ValueError(f"no grid time t_k of {S} steps lies in the state window [{window[0]}, {window[1]})")
-    k = ks[torch.randint(0, len(ks), (total,), generator=generator)][off:off + B].to(xs.device)
-    return xs[k, torch.arange(B, device=xs.device)].detach(), ts[k]
+    return ks[torch.randint(0, len(ks), (total,), generator=generator)][off:off + B].to(xs.device)
+
+
+@torch.no_grad()
+def teacher_velocities(model, traj, c_D: dict, teacher=None) -> torch.Tensor:
+    """v_theta'(x_{t_k}, t_k | c_D) at every grid state k = 0 .. S-1 of a trajectory (xs, ts): (S, B, ...). Eq. 9
+    needs them all; Eq. 11's one-point estimate then reads its state's from them (anchor_loss's teacher_v) instead of
+    running the Demonstrator again -- the same numbers, one forward fewer a step."""
+    xs, ts = traj
+    return torch.stack([teacher_velocity(model, xs[k], ts[k].expand(xs.shape[1]), c_D, teacher)
+                        for k in range(xs.shape[0] - 1)])
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -106,13 +121,20 @@ def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, t
 
 
 def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                shard: tuple | None = None, window: tuple | None = None, motion_weight: float = 1.0) -> torch.Tensor:
+                shard: tuple | None = None, window: tuple | None = None, motion_weight: float = 1.0,
+                teacher_v: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
-    of the integral over [lo, hi) only, up to the factor hi - lo). Scalar."""
-    x_t, t = _pick_states(*student_traj, generator, shard, window)
-    return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
+    of the integral over [lo, hi) only, up to the factor hi - lo). `teacher_v`: the Demonstrator's velocities along
+    the trajectory (teacher_velocities), if already computed for Eq. 9. Scalar."""
+    if teacher_v is None:
+        x_t, t = _pick_states(*student_traj, generator, shard, window)
+        return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
+    xs, ts = student_traj
+    k, rows = _pick_index(xs, ts, generator, shard, window), torch.arange(xs.shape[1], device=xs.device)
+    x_t, t = xs[k, rows].detach(), ts[k]
+    return squared_error(model(x_t, t, c_E), teacher_v[k, rows], x_t, t, c_D, motion_weight).mean()
 
 
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
@@ -132,7 +154,8 @@ def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
 
 @torch.no_grad()
 def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = False,
-                   student_v: torch.Tensor | None = None, teacher=None, motion_weight: float = 1.0) -> torch.Tensor:
+                   student_v: torch.Tensor | None = None, teacher=None, motion_weight: float = 1.0,
+                   teacher_v: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 9: r_distill(tau) = - int_0^1 || sg[v_theta(x_t, t | c_E)] - v_theta'(x_t, t | c_D) ||^2 dt
     on an Executor trajectory, as the left Riemann sum on the sampler's grid:
 
@@ -141,7 +164,8 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
     Returns (B,); with per_step=True the (B, S) terms -(t_{k+1} - t_k) l(x_{t_k}, t_k) of App. A.3 (their sum is the
     trajectory reward). No gradient: it acts through trajectory likelihood in the RL loss, not by backprop.
     `student_v` (S, B, ...): the Executor's velocities v_theta(x_{t_k}, t_k | c_E) recorded while sampling, which
-    spares recomputing them (only the Demonstrator's are then evaluated)."""
+    spares recomputing them (only the Demonstrator's are then evaluated); `teacher_v` (S, B, ...): the
+    Demonstrator's, from teacher_velocities."""
     xs, ts = student_traj
     S, B = xs.shape[0] - 1, xs.shape[1]
     terms = []
@@ -150,8 +174,8 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
         if student_v is None:
             l_k = discrepancy(model, xs[k], t, c_E, c_D, teacher, motion_weight)
         else:
-            l_k = squared_error(student_v[k], teacher_velocity(model, xs[k], t, c_D, teacher), xs[k], t, c_D,
-                                motion_weight)
+            v_D = teacher_velocity(model, xs[k], t, c_D, teacher) if teacher_v is None else teacher_v[k]
+            l_k = squared_error(student_v[k], v_D, xs[k], t, c_D, motion_weight)
         terms.append(-(ts[k + 1] - ts[k]) * l_k)
     terms = torch.stack(terms, dim=1)  # (B, S)
     return terms if per_step else terms.sum(1)

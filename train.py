@@ -1042,8 +1042,10 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
     local = judge_rollouts(videos, tasks, args.task_reward)
+    for p in parts:   # the Demonstrator along the Executor's trajectories: Eq. 9 uses them all, Eq. 11 one each
+        p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, teacher) if args.lambda_distill > 0 else None
     local["distill"] = (torch.cat([distill.distill_reward(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, student_v=p.vs,
-                                                          teacher=teacher, motion_weight=args.distill_motion_weight)
+                                                          teacher_v=p.vD, motion_weight=args.distill_motion_weight)
                                    for p in parts]).cpu() if args.lambda_distill > 0 else torch.zeros(n))
     # every reward lives on the CPU beside the judges' (advantages are computed there, then sent to the device)
     rewards = {k: _gather(v) for k, v in local.items()}
@@ -1059,7 +1061,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     def wmsd(p):   # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, Eq. 12
         l_rl, info = rl.OBJECTIVES[args.trainer](model, p.ro, A[p.rows], cfg, gen)
         l_anchor = (distill.anchor_loss(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, gen, teacher, p.shard,
-                                        state_window(args), args.distill_motion_weight) if args.beta_d > 0 else None)
+                                        state_window(args), args.distill_motion_weight, teacher_v=p.vD)
+                    if args.beta_d > 0 else None)
         info["l_rl"] = l_rl.item()
         if l_anchor is not None:
             info["l_anchor"] = l_anchor.item()

@@ -109,6 +109,28 @@ def test_motion_weight_weighs_the_pixels_the_demonstrator_moves():
     assert torch.allclose(w, torch.tensor([0.01 * (n - 3 + 3 * 10) / n, plain[1].item()]))
 
 
+def test_eq9_and_the_anchor_read_the_demonstrators_velocities_computed_once(lora_model):
+    """train.py computes the Demonstrator along the Executor's trajectory once (teacher_velocities): Eq. 9 uses every
+    state's, Eq. 11 its drawn state's. Both must equal what they compute on their own, draws included."""
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0.05)
+    traj = distill.rollout(m, x0, c_E, 4)
+    v_D = distill.teacher_velocities(m, traj, c_D)
+    assert v_D.shape == (4, *x0.shape)
+
+    def g():
+        return torch.Generator().manual_seed(1)
+
+    for kw in ({}, {"window": (0.25, 0.75), "motion_weight": 10.0}):
+        own = distill.anchor_loss(m, traj, c_E, c_D, g(), **kw)
+        read = distill.anchor_loss(m, traj, c_E, c_D, g(), teacher_v=v_D, **kw)
+        assert own > 0 and torch.allclose(read, own, rtol=1e-5, atol=0)
+        assert not torch.allclose(distill.anchor_loss(m, traj, c_E, c_D, g(), teacher_v=0 * v_D, **kw), own)
+    assert torch.allclose(distill.distill_reward(m, traj, c_E, c_D, teacher_v=v_D),
+                          distill.distill_reward(m, traj, c_E, c_D), rtol=1e-5, atol=0)
+    _perturb(m, 0)
+
+
 def test_on_policy_states_are_detached(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)

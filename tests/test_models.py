@@ -171,6 +171,20 @@ def test_use_cpu_sets_the_threads_and_leaves_the_videos_bit_for_bit(small, tmp_p
     assert np.array_equal(np.load(tmp_path / "plain.npy"), mine)
 
 
+@pytest.mark.parametrize("k", [3, 5])
+def test_neighbours_is_unfold_value_for_value_and_gradient_for_gradient(k):
+    """The DNA head's k x k neighbourhoods: shifted slices forward, unfold's own fold backward -- so the toy's
+    videos and its gradients are the numbers F.unfold gave, bit for bit."""
+    x = torch.randn(2, 3, 7, 6, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    y = torch.nn.functional.unfold(x, k, padding=k // 2).reshape(2, 3, k * k, 7, 6)
+    z = models.neighbours(x, k)
+    assert torch.equal(z, y)
+    up = torch.randn(z.shape, generator=torch.Generator().manual_seed(1))
+    gy, = torch.autograd.grad(y, x, up)
+    gz, = torch.autograd.grad(z, x, up)
+    assert torch.equal(gz, gy)
+
+
 def test_generate_builds_no_autograd_graph(small):
     """Sampling for the bench must not record a graph: with grad on, memory grows with steps x batch (200 pairs at
     20 steps were killed for memory when generate had lost its no_grad)."""
