@@ -161,9 +161,10 @@ class Args:
     """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
     train_pairs: int = 512
     """(image, T, D) training pairs drawn from the toy VLM, on scenes disjoint from the bench"""
-    eval_every: int = 10
+    eval_every: int = 0
     """steps between bench evaluations; the last step is always evaluated (in the rl stage by the final evaluation,
-    of the saved Executor)"""
+    of the saved Executor). 0: the stage's default, 10 in distill (Fig. 4 left's curve) and 25 in rl, where at 10
+    the 200-pair evaluations were a fifth of a 2-core toy run (README, "The laptop commands")"""
     eval_n: int = 200
     """bench pairs per evaluation"""
     eval_cache: str = ""
@@ -314,6 +315,8 @@ def parse_args(argv=None) -> Args:
             p.add_argument(f"--{f.name}", type=typ, default=f.default, help=docs.get(f.name),
                            choices=list(STAGES) if f.name == "stage" else None)
     args = Args(**vars(p.parse_args(argv)))
+    if args.eval_every == 0:
+        args.eval_every = 25 if args.stage == "rl" else 10
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
                  "sample_steps", "train_pairs", "eval_every", "eval_n", "tasks_per_step", "inner_epochs",
                  "awm_timesteps", "save_every", "executor_ema_every"):

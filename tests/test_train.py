@@ -418,6 +418,15 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
     assert same(pw[2][1], want)
 
 
+def test_eval_every_defaults_by_stage_and_a_given_value_stands():
+    every = lambda *argv: train.parse_args(list(argv)).eval_every  # noqa: E731
+    assert every("--toy") == 25 and every("--stage", "rl") == 25
+    assert every("--stage", "distill") == 10 and every("--stage", "pretrain") == 10
+    assert every("--toy", "--eval_every", "10") == 10 and every("--stage", "distill", "--eval_every", "3") == 3
+    with pytest.raises(SystemExit):
+        every("--toy", "--eval_every", "-1")
+
+
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
     name = lambda *argv: train.fig5_setting(train.parse_args(["--toy", *argv]))  # noqa: E731
     assert name() == "WMSD"
