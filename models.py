@@ -459,14 +459,11 @@ class ToyVideoFlow(nn.Module):
         B, _, H, W = ll.shape
         ev, k = self.cfg.evidence, torch.arange(9, device=ll.device)
 
-        def taps(x):   # (B, C, H, W) -> (B, C, 9, H, W): tap j holds x at p + off_j
-            return neighbours(x, 3)
-
-        lead = taps(ll * is_bg)[:, k, 8 - k]                # channel m: ll[m] of the pixel q - off_m, if background
+        lead = neighbours(ll * is_bg, 3)[:, k, 8 - k]     # channel m: ll[m] of the pixel q - off_m, if background
         win = neighbours(ll + lead, ev)
         E = (win * ((1 - is_bg) * same)[:, None]).sum(2)     # at a sprite pixel: its sprite's E_s (B, 9, H, W)
-        src = taps(1 - is_bg)[:, 0]                          # (B, 9, H, W): is the source of move m a sprite pixel
-        E_s = (taps(E) * src[:, None]).sum(2) / src.sum(1, keepdim=True).clamp(min=1e-3)  # the sprite's E_s at p
+        src = neighbours(1 - is_bg, 3)[:, 0]              # (B, 9, H, W): is the source of move m a sprite pixel
+        E_s = (neighbours(E, 3) * src[:, None]).sum(2) / src.sum(1, keepdim=True).clamp(min=1e-3)  # the sprite's E_s at p
         rest = (torch.logsumexp(E_s + torch.log((1 - src).clamp(min=1e-6)), 1, keepdim=True)
                 - torch.log((1 - src).sum(1, keepdim=True).clamp(min=1e-6)))
         return (1 - is_bg) * E + is_bg * (src * E_s + (1 - src) * rest)
