@@ -128,13 +128,11 @@ def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teach
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
     of the integral over [lo, hi) only, up to the factor hi - lo). `teacher_v`: the Demonstrator's velocities along
     the trajectory (teacher_velocities), if already computed for Eq. 9. Scalar."""
-    if teacher_v is None:
-        x_t, t = _pick_states(*student_traj, generator, shard, window)
-        return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
     xs, ts = student_traj
     k, rows = _pick_index(xs, ts, generator, shard, window), torch.arange(xs.shape[1], device=xs.device)
     x_t, t = xs[k, rows].detach(), ts[k]
-    return squared_error(model(x_t, t, c_E), teacher_v[k, rows], x_t, t, c_D, motion_weight).mean()
+    v_D = teacher_velocity(model, x_t, t, c_D, teacher) if teacher_v is None else teacher_v[k, rows]
+    return squared_error(model(x_t, t, c_E), v_D, x_t, t, c_D, motion_weight).mean()   # Eq. 4's l_theta
 
 
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
@@ -171,11 +169,9 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
     terms = []
     for k in range(S):
         t = ts[k].expand(B)
-        if student_v is None:
-            l_k = discrepancy(model, xs[k], t, c_E, c_D, teacher, motion_weight)
-        else:
-            v_D = teacher_velocity(model, xs[k], t, c_D, teacher) if teacher_v is None else teacher_v[k]
-            l_k = squared_error(student_v[k], v_D, xs[k], t, c_D, motion_weight)
+        v_E = model(xs[k], t, c_E) if student_v is None else student_v[k]
+        v_D = teacher_velocity(model, xs[k], t, c_D, teacher) if teacher_v is None else teacher_v[k]
+        l_k = squared_error(v_E, v_D, xs[k], t, c_D, motion_weight)             # Eq. 4's l_theta
         terms.append(-(ts[k + 1] - ts[k]) * l_k)
     terms = torch.stack(terms, dim=1)  # (B, S)
     return terms if per_step else terms.sum(1)
