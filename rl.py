@@ -130,6 +130,9 @@ class RLConfig:
     Demonstrator under c_D) plays this part, so it is off by default"""
     timesteps: int = 2
     """AWM / NFT: re-noising times per final sample"""
+    times: str = "uniform"
+    """AWM / NFT: where the re-noising times lie -- uniform (in [0, 0.98)) | grid (the sampler's own step times,
+    Flow-Factory's default reading; Tab. 3 does not say). _renoise has both"""
     weighting: str = "ghuber"
     """AWM time weighting: uniform | t | huber | ghuber (Tab. 3: ghuber)"""
     ghuber_power: float = 0.5
@@ -231,15 +234,24 @@ def flow_grpo(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=Non
 # AWM and DiffusionNFT: the flow-matching loss on re-noised final samples
 # ----------------------------------------------------------------------------------------------------------------
 
-def _renoise(ro: Rollouts, n_t: int, generator=None):
+def _renoise(ro: Rollouts, n_t: int, generator=None, times: str = "uniform"):
     """Re-noising draws for n_t times per final sample, held fixed across inner epochs (in ro.draws):
-    t (n_t * N,) uniform, stratified over [0, 0.98) so every inner epoch sees the same spread, and fresh noise eps;
-    x_t = (1 - t) eps + t x_1 (Eq. 2's path) and the flow-matching target u = x_1 - eps."""
+    t (n_t * N,) stratified so every inner epoch sees the same spread -- stratum j of n_t is u in [j/n_t, (j+1)/n_t),
+    and t = 0.98 u ("uniform", over [0, 0.98)) or the sampler's step time t_k, k = floor(S u), of the S steps the
+    rollout took ("grid": ro.ts[:-1], so only times the sampler evaluated the velocity at are trained) -- and fresh
+    noise eps; x_t = (1 - t) eps + t x_1 (Eq. 2's path) and the flow-matching target u = x_1 - eps."""
     if "renoise" not in ro.draws:
         N = ro.x1.shape[0]
         off, total = ro.shard or (0, N)
         strata = (torch.arange(n_t)[:, None] + torch.rand(n_t, total, generator=generator)) / n_t    # (n_t, total)
-        t = (0.98 * strata)[:, off:off + N].reshape(-1).to(ro.x1.device)       # drawn on the CPU generator
+        if times == "uniform":
+            t = 0.98 * strata
+        elif times == "grid":
+            grid = ro.ts[:-1].cpu()                                                       # (S,) t_0 = 0, ..., t_{S-1}
+            t = grid[(strata * len(grid)).long().clamp(max=len(grid) - 1)]
+        else:
+            raise ValueError(f"unknown re-noising times {times!r}; choose uniform or grid")
+        t = t[:, off:off + N].reshape(-1).to(ro.x1.device)                         # drawn on the CPU generator
         eps = torch.randn(n_t, total, *ro.x1.shape[1:], generator=generator)[:, off:off + N].flatten(0, 1)
         eps = eps.to(ro.x1.device)
         x1 = ro.x1.repeat(n_t, *([1] * (ro.x1.dim() - 1)))
@@ -280,7 +292,7 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     flow-matching loss of good samples, negative ones raise it for bad ones. Optional velocity-space KL to the
     reference (the base under c_E): kl_beta ||v_theta - v_ref||^2. Works on ODE or SDE rollouts (only x_1 is used)."""
     N, n_t = ro.x1.shape[0], cfg.timesteps
-    x_t, t, u = _renoise(ro, n_t, generator)
+    x_t, t, u = _renoise(ro, n_t, generator, cfg.times)
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)
     logp = -awm_weight(_sq(v - u), t, cfg.weighting, cfg.ghuber_power).reshape(n_t, N)    # (n_t, N)
@@ -317,7 +329,7 @@ def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     Good samples pull v+ (and so v_theta) towards their flow, bad ones push v- towards theirs -- i.e. v_theta away.
     No likelihood and no sampler in the loss: any sampler can produce x_1."""
     n_t = cfg.timesteps
-    x_t, t, u = _renoise(ro, n_t, generator)
+    x_t, t, u = _renoise(ro, n_t, generator, cfg.times)
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)
     if "nft_old" not in ro.draws:

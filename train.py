@@ -260,6 +260,8 @@ class Args:
     """KL to the base under c_E (flow-grpo, awm); the anchor plays this part in WMSD"""
     awm_timesteps: int = 2
     """awm / nft: re-noising times per final sample"""
+    awm_times: str = "uniform"
+    """awm / nft: where those times lie: uniform (in [0, 0.98)) | grid (the sampler's own step times)"""
     awm_weighting: str = "ghuber"
     """awm time weighting: uniform | t | huber | ghuber (Tab. 3)"""
     ghuber_power: float = 0.5
@@ -329,7 +331,7 @@ def parse_args(argv=None) -> Args:
         p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
-                          ("awm_ratio", ("exp_first", "sum_first")), ("executor_update", ("wmsd", "off")),
+                          ("awm_ratio", ("exp_first", "sum_first")), ("awm_times", ("uniform", "grid")), ("executor_update", ("wmsd", "off")),
                           ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
@@ -783,8 +785,8 @@ TRAINERS = tuple(rl.OBJECTIVES)
 
 def rl_config(args: Args) -> rl.RLConfig:
     return rl.RLConfig(clip_range=args.clip_range, kl_beta=args.kl_beta, timesteps=args.awm_timesteps,
-                       weighting=args.awm_weighting, ghuber_power=args.ghuber_power, ratio=args.awm_ratio,
-                       nft_beta=args.nft_beta)
+                       times=args.awm_times, weighting=args.awm_weighting, ghuber_power=args.ghuber_power,
+                       ratio=args.awm_ratio, nft_beta=args.nft_beta)
 
 
 JUDGE = None

@@ -161,6 +161,32 @@ def test_awm_weighting_on_hand_made_inputs():
         rl.awm_weight(err, t, "cubic")
 
 
+def test_renoising_times_stratified_uniform_or_on_the_samplers_grid():
+    """_renoise: n_t strata per sample; "uniform" puts stratum j's time in [0.98 j/n_t, 0.98 (j+1)/n_t), "grid" on
+    the sampler's step times that fall in stratum j of the S steps; the path and target are Eq. 2's either way."""
+    ro = _tiny_rollouts(Tiny(), n=400, steps=10, sde=False)
+    grid = ro.ts[:-1]
+    for times in ("uniform", "grid"):
+        ro.draws.clear()
+        x_t, t, u = rl._renoise(ro, 4, torch.Generator().manual_seed(0), times)
+        t = t.reshape(4, 400)
+        if times == "uniform":
+            for j in range(4):
+                assert (t[j] >= 0.98 * j / 4).all() and (t[j] < 0.98 * (j + 1) / 4).all()
+        else:
+            hits = (t[..., None] == grid).sum(-1)
+            assert (hits == 1).all()                                       # every time is one of the grid's
+            k = (t * 10).round().long()
+            assert (k[0] <= 2).all() and ((k[1] >= 2) & (k[1] <= 4)).all() and (k[3] >= 7).all()
+            assert set(k.flatten().tolist()) == set(range(10))             # and every step time is drawn
+        x1 = ro.x1.repeat(4, 1)
+        eps = x1 - u
+        assert torch.allclose(x_t, (1 - t.reshape(-1, 1)) * eps + t.reshape(-1, 1) * x1, atol=1e-6)
+    with pytest.raises(ValueError):
+        ro.draws.clear()
+        rl._renoise(ro, 4, None, "logit")
+
+
 def test_gaussian_kl_closed_form():
     mu = torch.randn(4, 3)
     s = torch.tensor([0.1, 0.2, 0.3, 0.4])
