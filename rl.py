@@ -131,8 +131,8 @@ class RLConfig:
     timesteps: int = 2
     """AWM / NFT: re-noising times per final sample"""
     times: str = "uniform"
-    """AWM / NFT: where the re-noising times lie -- uniform (in [0, 0.98)) | grid (the sampler's own step times,
-    Flow-Factory's default reading; Tab. 3 does not say). _renoise has both"""
+    """AWM / NFT: where the re-noising times lie -- uniform (in [0, 0.98)) | grid (the sampler's own step times, as
+    the public trainer Flow-Factory draws them by default; Tab. 3 does not say). _renoise draws both"""
     weighting: str = "ghuber"
     """AWM time weighting: uniform | t | huber | ghuber (Tab. 3: ghuber)"""
     ghuber_power: float = 0.5

@@ -331,7 +331,8 @@ def parse_args(argv=None) -> Args:
         p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
-                          ("awm_ratio", ("exp_first", "sum_first")), ("awm_times", ("uniform", "grid")), ("executor_update", ("wmsd", "off")),
+                          ("awm_ratio", ("exp_first", "sum_first")), ("awm_times", ("uniform", "grid")),
+                          ("executor_update", ("wmsd", "off")),
                           ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
