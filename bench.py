@@ -24,6 +24,7 @@ which a bystander moves the goal to the agent.
 
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
+  python bench.py --condition vlm --guidance 3    # classifier-free guidance against the empty caption, w = 3
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
@@ -167,14 +168,17 @@ def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
-             steps: int = 10, judge=None, batch: int = 200, pairs: list | None = None) -> tuple[dict, np.ndarray, list]:
+             steps: int = 10, judge=None, batch: int = 200, pairs: list | None = None,
+             guidance: float = 1.0) -> tuple[dict, np.ndarray, list]:
     """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
-    Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch). The bench is the toy one, or
-    `pairs` (a real-image bench, train.load_bench). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+    Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch), with classifier-free guidance
+    w = `guidance` (1: none; flow.guided_field). The bench is the toy one, or `pairs` (a real-image bench,
+    train.load_bench). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
     pairs = (world.bench_pairs(error_rate) if pairs is None else pairs)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
-    videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed, batch=batch)
+    videos = models.generate(model, frame0, prompts_for(pairs, condition), steps=steps, seed=seed, batch=batch,
+                             guidance=guidance)
     seconds = time.time() - t0
     t1 = time.time()
     if judge is None:
@@ -182,8 +186,8 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
     else:
         judgments = judge.bench(videos, [p.task.text for p in pairs])
     res = score_table(judgments)
-    res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, seconds=seconds,
-               seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
+    res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, guidance=guidance,
+               seconds=seconds, seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
                kinds=kind_scores(pairs, judgments), by_vlm_error=vlm_error_scores(pairs, judgments),
                faults=consistency_faults(judgments))
@@ -460,7 +464,7 @@ def relate_probe(model, pairs: list, mode: str):
 
 def format_table(res: dict, title: str = "") -> str:
     rows = [f"{title}condition={res['condition']} n={res['n']} seed={res['seed']} error_rate={res['error_rate']} "
-            f"steps={res['steps']}",
+            f"steps={res['steps']}" + (f" guidance={res['guidance']:g}" if res.get("guidance", 1) != 1 else ""),
             "| judgment    | score | successes/valid | failures |", "|---|---|---|---|"]
     for k in (*KEYS, "avg"):
         s = res["successes"][k]
@@ -633,6 +637,9 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0, help="seed of the sampling noise")
     p.add_argument("--error_rate", type=float, default=DEFAULT_ERROR_RATE, help="toy VLM's share of wrong descriptions")
     p.add_argument("--steps", type=int, default=10, help="Euler steps")
+    p.add_argument("--guidance", type=float, default=1.0, metavar="W",
+                   help="classifier-free guidance scale against the empty caption (1: none, the default and what "
+                        "training samples with; other W: two forwards a step; flow.guided_field)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
     p.add_argument("--gallery", default=None, metavar="PNG",
@@ -707,6 +714,10 @@ def main(argv=None):
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
         p.error(f"--steps must be >= 1, got {a.steps}")
+    if a.guidance < 0:
+        p.error(f"--guidance must be >= 0 (1: none, 0: the empty caption alone), got {a.guidance}")
+    if a.guidance != 1 and (a.handoff is not None or a.rank_rdistill or a.pointing or a.gallery):
+        p.error("--guidance applies to one evaluation: not with --handoff, --rank_rdistill, --pointing or --gallery")
     if a.group < 2:
         p.error(f"--group must be >= 2 (a rank needs two rollouts), got {a.group}")
     if a.handoff is not None and a.rank_rdistill:
@@ -813,7 +824,8 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
         if a.json:
             print(json.dumps(res))
         return
-    res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs)
+    res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
+                              a.guidance)
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
         res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)

@@ -5,8 +5,9 @@ Time convention (the paper's, used everywhere in this repository): t = 0 is nois
     x_t = (1 - t) x_0 + t x_1,      x_0 ~ N(0, I),  x_1 ~ p_data,      d x_t / dt = x_1 - x_0.
 
 A velocity field v(x_t, t) is any callable (x: (B, ...), t: (B,)) -> (B, ...). Conditioning (first frame, text)
-is closed over by the caller. Where a real model uses the other convention (diffusers' sigma = 1 - t, LTX-2),
-the conversion happens in models.py at that boundary only.
+is closed over by the caller; guided_field combines two such fields (classifier-free guidance). Where a real model
+uses the other convention (diffusers' sigma = 1 - t, LTX-2), the conversion happens in models.py at that boundary
+only.
 """
 from __future__ import annotations
 
@@ -65,6 +66,24 @@ def sample_ode(v_theta: VelocityField, x_0: torch.Tensor, steps: int, return_tra
         if return_trajectory:
             xs.append(x)
     return (torch.stack(xs), ts) if return_trajectory else x
+
+
+def guided_field(v_cond: VelocityField, v_uncond: VelocityField, scale: float) -> VelocityField:
+    """Classifier-free guidance (Ho & Salimans, 2022; not in the paper, which does not say whether it guides): the
+    field the ODE integrates is
+
+        v_w(x_t, t) = v(x_t, t | c_u) + w (v(x_t, t | c) - v(x_t, t | c_u)),
+
+    c the prompt's conditioning and c_u the same first frame with an empty caption (the toy base read one in a tenth
+    of its pretraining clips, train.py --p_empty). w = 1 returns v(x_t, t | c) itself, w = 0 the caption-free field;
+    any other w costs two forwards a step instead of one."""
+    if scale == 1:
+        return v_cond
+
+    def v_w(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        v_u = v_uncond(x, t)
+        return v_u + scale * (v_cond(x, t) - v_u)
+    return v_w
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -527,16 +527,20 @@ def seeded_noise(model, n: int, seed: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200):
+def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed: int = 0, batch: int = 200,
+             guidance: float = 1.0):
     """Sample one video per (first frame, prompt), tau ~ p(tau | I, text) of Eq. 1, with the Euler ODE sampler
     (Eq. 2) from seeded noise x_0, `batch` videos a pass (a progress line after each when there are several).
+    `guidance` w != 1 samples with classifier-free guidance against the empty caption (flow.guided_field).
     Returns uint8 (B, F, H, W, 3). The noise depends only on `seed` and the item's index, not on `batch`."""
     x_0 = seeded_noise(model, len(texts), seed)
     out, start = [], time.time()
     for i in range(0, len(texts), batch):
         c = model.condition(frame0[i:i + batch], texts[i:i + batch])
+        c_u = model.condition(frame0[i:i + batch], [""] * len(texts[i:i + batch])) if guidance != 1 else None
         dev = next(model.parameters()).device
-        x_1 = flow.sample_ode(lambda x, t: model(x, t, c), x_0[i:i + batch].to(dev), steps)
+        field = flow.guided_field(lambda x, t: model(x, t, c), lambda x, t: model(x, t, c_u), guidance)
+        x_1 = flow.sample_ode(field, x_0[i:i + batch].to(dev), steps)
         out.append(model.decode(x_1, frame0[i:i + batch]))
         done = min(i + batch, len(texts))
         if batch < len(texts):

@@ -48,3 +48,17 @@ def test_flow_matching_loss_is_zero_at_its_known_minimiser_and_positive_elsewher
     assert flow.flow_matching_loss(lambda x, tt: v_star(x, tt) + 0.1, x0, x1, t) > 1e-3
     # per-sample weights: zero weight gives zero loss
     assert flow.flow_matching_loss(lambda x, tt: v_star(x, tt) + 0.1, x0, x1, t, weight=torch.zeros(64)) == 0
+
+
+def test_classifier_free_guidance_combines_the_two_fields_as_stated():
+    """v_w = v_u + w (v_c - v_u): w = 1 is the conditional field itself (one forward a step), w = 0 the
+    unconditional one; on constant fields Euler integrates v_w exactly."""
+    x0, c, u = torch.randn(4, 3), torch.randn(4, 3), torch.randn(4, 3)
+    v_c, v_u = (lambda x, t: c), (lambda x, t: u)
+    assert flow.guided_field(v_c, v_u, 1.0) is v_c
+    t = torch.zeros(4)
+    assert torch.equal(flow.guided_field(v_c, v_u, 0.0)(x0, t), u)
+    for w in (0.5, 3.0):
+        assert torch.allclose(flow.guided_field(v_c, v_u, w)(x0, t), u + w * (c - u))
+        assert torch.allclose(flow.sample_ode(flow.guided_field(v_c, v_u, w), x0, steps=5), x0 + u + w * (c - u),
+                              atol=1e-6)

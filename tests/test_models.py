@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+import flow
 import models
 import world
 from conftest import run
@@ -144,6 +145,23 @@ def test_generate_is_deterministic_and_independent_of_batching(small, capsys):
     assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
     assert np.array_equal(a, b)
     assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated
+
+
+def test_generate_with_guidance_samples_the_guided_field_against_the_empty_caption():
+    base = models.load_checkpoint(None)[0].eval()   # the shipped base: a fresh model's zero output ignores the text
+    rng = np.random.default_rng(2)
+    scenes = [world.random_scene(rng) for _ in range(2)]
+    frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
+    texts = ["red square moves left 1 for 3 frames then stops", "[blue circle]: go to the top edge"]
+    plain = models.generate(base, frame0, texts, steps=3, seed=4)
+    assert np.array_equal(models.generate(base, frame0, texts, steps=3, seed=4, guidance=1.0), plain)
+    c, c_u = base.condition(frame0, texts), base.condition(frame0, ["", ""])
+    with torch.no_grad():   # by hand: v_u + 3 (v_c - v_u) from the same seeded noise
+        x_1 = flow.sample_ode(lambda x, t: base(x, t, c_u) + 3 * (base(x, t, c) - base(x, t, c_u)),
+                              models.seeded_noise(base, 2, 4), 3)
+    guided = models.generate(base, frame0, texts, steps=3, seed=4, guidance=3.0)
+    assert np.array_equal(guided, base.decode(x_1, frame0))
+    assert not np.array_equal(guided, plain)
 
 
 def test_use_cpu_sets_the_threads_and_leaves_the_videos_bit_for_bit(small, tmp_path):

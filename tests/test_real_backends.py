@@ -382,9 +382,10 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
         saved = torch.load(lora, weights_only=True)["lora"]
         assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
         r = run("bench.py", "--model", model, "--lora", lora, "--judge", judge, "--dataset", held, "--n", "2",
-                "--steps", "2", "--batch", "1", "--png", str(tmp_path / "b.png"))
-        assert r.returncode == 0, r.stderr[-2000:]
+                "--steps", "2", "--batch", "1", "--guidance", "2", "--png", str(tmp_path / "b.png"))
+        assert r.returncode == 0, r.stderr[-2000:]        # guided: the empty caption through Gemma and connectors
         assert f"model={model} + {lora} judge={judge} bench={held}" in r.stdout and "| task " in r.stdout
+        assert "steps=2 guidance=2" in r.stdout
         assert f"Executor: {lora}, {len(saved)} LoRA weights loaded (rank 8, 1 steps of --model {model})" in r.stdout
         assert (tmp_path / "b.png").exists()
         import bench

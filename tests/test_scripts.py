@@ -267,6 +267,8 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     assert "Spearman(r_distill, -motion)" in r.stdout and json.loads(r.stdout.splitlines()[-1])["group"] == 3
     r = run("bench.py", "--rank_rdistill", "--group", "1")
     assert r.returncode == 2 and "--group must be >= 2" in r.stderr
+    r = run("bench.py", "--guidance", "-1")
+    assert r.returncode == 2 and "--guidance must be >= 0" in r.stderr
 
 
 def test_pretraining_that_teaches_relate_to_point_and_the_probe_that_reads_it(tmp_path):
