@@ -70,7 +70,7 @@ def sample_ode(v_theta: VelocityField, x_0: torch.Tensor, steps: int, return_tra
 
 def guided_field(v_cond: VelocityField, v_uncond: VelocityField, scale: float) -> VelocityField:
     """Classifier-free guidance (Ho & Salimans, 2022; not in the paper, which does not say whether it guides): the
-    field the ODE integrates is
+    field that Eq. 2's sampler integrates becomes
 
         v_w(x_t, t) = v(x_t, t | c_u) + w (v(x_t, t | c) - v(x_t, t | c_u)),
 
