@@ -536,12 +536,13 @@ def generate(model, frame0: np.ndarray, texts: list[str], steps: int = 10, seed:
     x_0 = seeded_noise(model, len(texts), seed)
     out, start = [], time.time()
     for i in range(0, len(texts), batch):
-        c = model.condition(frame0[i:i + batch], texts[i:i + batch])
-        c_u = model.condition(frame0[i:i + batch], [""] * len(texts[i:i + batch])) if guidance != 1 else None
+        frames, prompts = frame0[i:i + batch], texts[i:i + batch]
+        c = model.condition(frames, prompts)
+        c_u = model.condition(frames, [""] * len(prompts)) if guidance != 1 else None   # the empty caption
         dev = next(model.parameters()).device
         field = flow.guided_field(lambda x, t: model(x, t, c), lambda x, t: model(x, t, c_u), guidance)
         x_1 = flow.sample_ode(field, x_0[i:i + batch].to(dev), steps)
-        out.append(model.decode(x_1, frame0[i:i + batch]))
+        out.append(model.decode(x_1, frames))
         done = min(i + batch, len(texts))
         if batch < len(texts):
             spent = time.time() - start
