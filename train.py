@@ -1344,8 +1344,10 @@ def rl_stage(args: Args) -> dict:
         if rank0 and (step % args.save_every == 0 or step == args.steps):
             logf.flush()      # the log on disk holds every step the state has seen
             save_state(state_path, step, model, opt, demo_net, demo_opt, rng, gen, evals, fixed, args, ema)
-    if not rank0:
+    if dist.is_initialized():   # the last collective is behind us: every process leaves the group together (rank 1
+        dist.barrier()          # destroying its gloo group alone, while rank 0 still held it, once aborted in CI)
         dist.destroy_process_group()
+    if not rank0:
         return {}
     out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
     with weights_swapped(params, ema):   # the Executor that is saved and judged: the average, under --executor_ema
@@ -1380,8 +1382,6 @@ def rl_stage(args: Args) -> dict:
     print("\n".join(table))
     print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")
-    if dist.is_initialized():
-        dist.destroy_process_group()
     return summary
 
 
