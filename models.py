@@ -714,6 +714,16 @@ def save_lora(model: nn.Module, path: str, meta: dict | None = None) -> None:
                  "meta": meta or {}}, path)
 
 
+def _reason(e: Exception) -> str:
+    """One line on why a file would not load. torch.load(weights_only=True)'s refusal opens with advice to load the
+    file as an arbitrary pickle instead; a file we did not write must not be loaded that way, so keep only the cause."""
+    text = str(e)
+    if "WeightsUnpickler error:" in text:
+        cause = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
+        text = f"not a file of tensors that torch.save wrote ({cause})"
+    return f"{type(e).__name__}: {text.splitlines()[0][:200]}"
+
+
 def load_lora(model: nn.Module, path: str, add: bool = False) -> dict:
     """Load save_lora's weights into a model that already has the same adapters -- or, with add=True, first give it
     adapters of the rank and alpha the file's run used (train.py's meta) -- a clear error otherwise."""
@@ -729,8 +739,7 @@ def load_lora(model: nn.Module, path: str, add: bool = False) -> dict:
     except FileNotFoundError:
         raise FileNotFoundError(f"LoRA file {path!r} does not exist") from None
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"LoRA file {path!r} is corrupt or does not match this model: {type(e).__name__}: "
-                         f"{str(e).splitlines()[0][:200]}") from None
+        raise ValueError(f"LoRA file {path!r} is corrupt or does not match this model: {_reason(e)}") from None
     return state.get("meta", {})
 
 
@@ -746,8 +755,7 @@ def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
         model = make_model(state["backend"], **state["config"])
         model.load_state_dict(state["state_dict"])
     except Exception as e:  # noqa: BLE001 -- any failure here means the file is not a usable checkpoint
-        raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {type(e).__name__}: "
-                         f"{str(e).splitlines()[0][:200]}") from None
+        raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {_reason(e)}") from None
     return model, state.get("meta", {})
 
 
