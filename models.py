@@ -560,7 +560,9 @@ class LoRA(nn.Module):
     """A low-rank update of one layer's weight, W' = W + (alpha / r) B A, with A: (r, fan_in) random and
     B: (out, r) zeros, so the layer equals the base at init. For nn.Linear, y = W x + b + (alpha / r) B (A x); for
     nn.Conv1d / nn.Conv2d (add_lora's convs), B A is reshaped to the kernel (out, in, k...) -- LoCon's form (a k x k
-    down-projection to r channels, a 1 x 1 up-projection), merged the same way."""
+    down-projection to r channels, a 1 x 1 up-projection), merged the same way. For nn.Embedding (add_lora's
+    embeddings; the table E is (V, d), so A: (r, d), B: (V, r)), word w's row is E[w] + (alpha / r) B[w] A: each word
+    gets an r-dim code in a learned subspace, as peft's embedding LoRA does; the padding row stays zero."""
 
     def __init__(self, base: nn.Module, rank: int, alpha: float):
         super().__init__()
@@ -577,23 +579,26 @@ class LoRA(nn.Module):
             return self.base(x)
         if isinstance(self.base, nn.Linear):
             return self.base(x) + self.scale * (x @ self.lora_A.T) @ self.lora_B.T
+        if isinstance(self.base, nn.Embedding):
+            return self.base(x) + self.scale * F_.embedding(x, self.lora_B, self.base.padding_idx) @ self.lora_A
         return self.base._conv_forward(x, self.base.weight + self.delta(), self.base.bias)
 
 
 def add_lora(model: nn.Module, rank: int = 8, alpha: float = 16.0, target: str = r".*",
-             convs: bool = False) -> list[str]:
+             convs: bool = False, embeddings: bool = False) -> list[str]:
     """Wrap every nn.Linear whose qualified name matches `target` in a LoRA; with convs, every nn.Conv1d/nn.Conv2d
     too (the toy U-Net does most of its work in convolutions, where LTX-2's transformer does it in the Linear
-    layers that Table 3's LoRA covers). Freeze everything else. Returns the wrapped names. (Table 3 uses rank 64 /
-    alpha 128 on LTX-2's video attention.)"""
+    layers that Table 3's LoRA covers); with embeddings, the toy text encoder's word table too (the words its
+    captions never used are still random vectors, where LTX-2's Gemma has read every word). Freeze everything
+    else. Returns the wrapped names. (Table 3 uses rank 64 / alpha 128 on LTX-2's video attention.)"""
     if hasattr(model, "add_lora"):          # a backend with its own LoRA (LTX-2: peft through diffusers)
-        if convs:
-            raise ValueError("LoRA on convolutions is for the toy U-Net; a real backend's LoRA follows Table 3")
+        if convs or embeddings:
+            raise ValueError("LoRA on convolutions or embeddings is for the toy; a real backend's LoRA follows Table 3")
         return model.add_lora(rank, alpha) if target == r".*" else model.add_lora(rank, alpha, target)
-    kinds = (nn.Linear, nn.Conv1d, nn.Conv2d) if convs else (nn.Linear,)
+    kinds = (nn.Linear,) + ((nn.Conv1d, nn.Conv2d) if convs else ()) + ((nn.Embedding,) if embeddings else ())
     names = [n for n, m in model.named_modules() if isinstance(m, kinds) and re.fullmatch(target, n)]
     if not names:
-        raise ValueError(f"LoRA target {target!r} matches no {'Linear or conv' if convs else 'Linear'} layer")
+        raise ValueError(f"LoRA target {target!r} matches no {' or '.join(k.__name__ for k in kinds)} layer")
     for p in model.parameters():
         p.requires_grad_(False)
     for n in names:

@@ -155,6 +155,9 @@ class Args:
     lora_convs: bool = False
     """LoRA on the toy U-Net's convolutions too, not only its Linear layers (models.add_lora; README, "What the
     Executor can learn given T")"""
+    lora_embeddings: bool = False
+    """LoRA on the toy text encoder's word table too (models.add_lora): lets the Executor move the rows of the words
+    that no pretraining caption used, still random vectors (docs/given-t.md, "Task by kind")"""
     sample_steps: int = 10
     """Euler steps of every rollout, in training and evaluation"""
     error_rate: float = 0.3
@@ -354,8 +357,9 @@ def parse_args(argv=None) -> Args:
                 f"directory; nothing is downloaded)")
     if models.cannot_run_here(args.model, args.judge):
         p.error(models.cannot_run_here(args.model, args.judge))
-    if args.model != "toy" and args.lora_convs:
-        p.error("--lora_convs is for the toy U-Net; a real backend's LoRA covers its video attention (Table 3)")
+    if args.model != "toy" and (args.lora_convs or args.lora_embeddings):
+        p.error("--lora_convs and --lora_embeddings are for the toy; a real backend's LoRA covers its video attention "
+                "(Table 3)")
     if args.judge != "toy" and args.task_reward != "end_state":
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
@@ -641,7 +645,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model, _ = models.load_checkpoint(args.init or None)
-    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
+    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     fake, fake_opt = None, None
@@ -1256,10 +1260,11 @@ def rl_stage(args: Args) -> dict:
     demo_net = demo_opt = demo_params = None
     if args.alternate > 0:       # Alg. 2: a Demonstrator phi of its own, trained in every N-th iteration
         demo_net = models.copy_for_adapter(model)
-        models.add_lora(demo_net, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
+        models.add_lora(demo_net, args.lora_rank, args.lora_alpha, convs=args.lora_convs,
+                        embeddings=args.lora_embeddings)
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
-    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs)
+    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the base

@@ -46,17 +46,18 @@ def test_unknown_word_is_a_clear_error(small):
         world.parse_task("[red square]: jump over the blue circle")
 
 
-@pytest.mark.parametrize("convs", [False, True])
-def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(convs):
+@pytest.mark.parametrize("convs, embeddings", [(False, False), (True, False), (False, True)])
+def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(convs, embeddings):
     torch.manual_seed(0)
     model = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
     torch.nn.init.normal_(model.out.weight, std=0.1)  # a fresh model ignores its input (zero-init output): fake a trained one
     x, t, c = _inputs(model, ["red square moves left 2 for 3 frames then stops", "camera pans up 1 for 2 frames then stops"])
     with torch.no_grad():
         base = model(x, t, c)
-    names = models.add_lora(model, rank=4, alpha=8, convs=convs)
+    names = models.add_lora(model, rank=4, alpha=8, convs=convs, embeddings=embeddings)
     assert len(names) > 10
     assert any(isinstance(model.get_submodule(n).base, torch.nn.Conv2d) for n in names) == convs
+    assert ("text.emb" in names) == embeddings
     with torch.no_grad():
         assert torch.equal(model(x, t, c), base)  # B = 0 at init
     params = models.lora_parameters(model)
@@ -79,6 +80,9 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(c
     assert sum(p.numel() for p in merged.parameters()) == n_base
     with torch.no_grad():
         assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)
+    if embeddings:   # the words' rows moved (B got a gradient), the padding row did not
+        table, pad = merged.text.emb.weight, merged.text.emb.padding_idx
+        assert not torch.equal(table, model.text.emb.base.weight) and torch.equal(table[pad], torch.zeros_like(table[pad]))
 
 
 def test_a_second_network_for_alg2_shares_the_base_and_trains_its_own_lora():
