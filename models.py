@@ -562,13 +562,15 @@ class LoRA(nn.Module):
     nn.Conv1d / nn.Conv2d (add_lora's convs), B A is reshaped to the kernel (out, in, k...) -- LoCon's form (a k x k
     down-projection to r channels, a 1 x 1 up-projection), merged the same way. For nn.Embedding (add_lora's
     embeddings; the table E is (V, d), so A: (r, d), B: (V, r)), word w's row is E[w] + (alpha / r) B[w] A: each word
-    gets an r-dim code in a learned subspace, as peft's embedding LoRA does; the padding row stays zero."""
+    gets an r-dim code B[w] (zeros at init) in a learned basis A (unit normal at init, not 1 / sqrt(d): the rows it
+    moves have norm about sqrt(d)), as loralib's and peft's embedding LoRA; the padding row stays zero."""
 
     def __init__(self, base: nn.Module, rank: int, alpha: float):
         super().__init__()
         self.base, self.scale, self.enabled = base, alpha / rank, True
         fan_in = base.weight[0].numel()
-        self.lora_A = nn.Parameter(torch.randn(rank, fan_in) / math.sqrt(fan_in))
+        root = 1.0 if isinstance(base, nn.Embedding) else math.sqrt(fan_in)   # an embedding's basis: unit normal
+        self.lora_A = nn.Parameter(torch.randn(rank, fan_in) / root)
         self.lora_B = nn.Parameter(torch.zeros(base.weight.shape[0], rank))
 
     def delta(self) -> torch.Tensor:
