@@ -80,9 +80,20 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(c
     assert sum(p.numel() for p in merged.parameters()) == n_base
     with torch.no_grad():
         assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)
-    if embeddings:   # the words' rows moved (B got a gradient), the padding row did not
-        table, pad = merged.text.emb.weight, merged.text.emb.padding_idx
-        assert not torch.equal(table, model.text.emb.base.weight) and torch.equal(table[pad], torch.zeros_like(table[pad]))
+    if embeddings:   # the words' rows moved
+        assert not torch.equal(merged.text.emb.weight, model.text.emb.base.weight)
+
+
+def test_embedding_lora_rows_are_table_plus_code_times_basis_and_the_padding_row_gets_no_gradient():
+    torch.manual_seed(0)
+    lora = models.LoRA(torch.nn.Embedding(5, 4, padding_idx=0), rank=2, alpha=4)
+    ids = torch.tensor([[3, 1, 0, 0]])
+    assert torch.equal(lora(ids), lora.base(ids))                 # B = 0 at init
+    lora.lora_B.data.normal_()
+    want = lora.base.weight[ids] + 2.0 * lora.lora_B[ids] @ lora.lora_A   # E[w] + (alpha / r) B[w] A
+    assert torch.allclose(lora(ids), want, atol=1e-6)
+    lora(ids).sum().backward()
+    assert lora.lora_B.grad[0].abs().sum() == 0 and lora.lora_B.grad[3].abs().sum() > 0
 
 
 def test_a_second_network_for_alg2_shares_the_base_and_trains_its_own_lora():
