@@ -570,8 +570,9 @@ class LoRA(nn.Module):
         self.base, self.scale, self.enabled = base, alpha / rank, True
         fan_in = base.weight[0].numel()
         root = 1.0 if isinstance(base, nn.Embedding) else math.sqrt(fan_in)   # an embedding's basis: unit normal
-        self.lora_A = nn.Parameter(torch.randn(rank, fan_in) / root)
-        self.lora_B = nn.Parameter(torch.zeros(base.weight.shape[0], rank))
+        dev = base.weight.device                   # drawn on the CPU generator: the same A on every device
+        self.lora_A = nn.Parameter((torch.randn(rank, fan_in) / root).to(dev))
+        self.lora_B = nn.Parameter(torch.zeros(base.weight.shape[0], rank, device=dev))
 
     def delta(self) -> torch.Tensor:
         return self.scale * (self.lora_B @ self.lora_A).view_as(self.base.weight)

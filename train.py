@@ -191,6 +191,10 @@ class Args:
     ltx2-tiny, hunyuan15-tiny (random-weight models of the real classes, for checking the real path on a CPU) |
     ltx2-random, hunyuan15-random (the real sizes with random weights, on a GPU: a step's seconds and memory,
     nothing more)"""
+    toy_gpu: bool = False
+    """the toy model on the GPU (the rl stage; real models go to the GPU whenever there is one). Off by default: every
+    toy number in the README was measured on CPUs, and floating-point sums differ between devices. For runs too big
+    for a laptop, e.g. Table 3's 32 tasks x 24 rollouts a step"""
     model_path: str = ""
     """--model ltx2 / hunyuan15: a local diffusers directory of the model (transformer/, vae/, text_encoder/, ...)"""
     dataset: str = ""
@@ -400,6 +404,10 @@ def parse_args(argv=None) -> Args:
         p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
     if args.offload_judge and args.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
+    if args.toy_gpu and (args.model != "toy" or args.stage != "rl"):
+        p.error("--toy_gpu puts the toy model of the rl stage on the GPU (a real --model goes there by itself)")
+    if args.toy_gpu and not torch.cuda.is_available():
+        p.error("--toy_gpu: torch sees no GPU on this machine")
     if args.offload_text and args.model == "toy":
         p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15 and their -tiny and "
                 "-random stand-ins)")
@@ -1162,7 +1170,8 @@ def load_state(path: str, args: Args) -> dict:
 def load_base(args: Args):
     """The base video model named by --model (the Executor and, adapters off, the Demonstrator)."""
     if args.model == "toy":
-        return models.load_checkpoint(args.init or None)[0]
+        model = models.load_checkpoint(args.init or None)[0]
+        return model.to("cuda") if args.toy_gpu else model
     cuda = torch.cuda.is_available()   # a real model, or its tiny or random stand-in, runs on the GPU when there is one
     if args.model.endswith("-tiny"):
         model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
