@@ -96,6 +96,20 @@ def test_embedding_lora_rows_are_table_plus_code_times_basis_and_the_padding_row
     assert lora.lora_B.grad[0].abs().sum() == 0 and lora.lora_B.grad[3].abs().sum() > 0
 
 
+def test_lora_lives_on_its_layers_device_with_the_basis_the_cpu_generator_draws():
+    # train.py --toy_gpu adds the LoRA to a toy already on the GPU; the meta device stands in for it here
+    meta, cpu = torch.nn.Linear(6, 4, device="meta"), torch.nn.Linear(6, 4)
+    torch.manual_seed(0)
+    elsewhere = models.LoRA(meta, rank=2, alpha=4)
+    after = torch.randn(3)
+    assert {p.device.type for p in elsewhere.parameters()} == {"meta"}
+    torch.manual_seed(0)
+    on_cpu = models.LoRA(cpu, rank=2, alpha=4)
+    assert torch.equal(torch.randn(3), after)      # both drew A from the CPU generator: the same A on any device
+    torch.manual_seed(0)
+    assert torch.equal(on_cpu.lora_A, torch.randn(2, 6) / 6 ** 0.5)
+
+
 def test_a_second_network_for_alg2_shares_the_base_and_trains_its_own_lora():
     """models.copy_for_adapter (train.py --alternate's phi): the same base tensors, held once; its own LoRA, whose
     training leaves the Executor's network alone; made from the base only."""
