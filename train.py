@@ -159,7 +159,11 @@ class Args:
     """LoRA on the toy text encoder's word table too (models.add_lora): lets the Executor move the rows of the words
     that no pretraining caption used, still random vectors (docs/given-t.md, "Task by kind")"""
     sample_steps: int = 10
-    """Euler steps of every rollout, in training and evaluation"""
+    """Euler steps of every rollout, in training and evaluation (--train_steps sets training's apart)"""
+    train_steps: int = 0
+    """Euler steps of the training rollouts (distill and rl stages); 0: --sample_steps, as in evaluation. Sec. 4.6:
+    the paper trains with fewer steps than it evaluates with, for speed, and finds that the poorer training samples
+    make reward hacking likelier (README, "Fewer sampling steps in training")"""
     error_rate: float = 0.3
     """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
     train_pairs: int = 512
@@ -291,6 +295,11 @@ class Args:
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
 
 
+def train_steps(args: Args) -> int:
+    """Euler steps of a training rollout: --train_steps, or --sample_steps (evaluation's) when it is 0."""
+    return args.train_steps or args.sample_steps
+
+
 def state_window(args: Args) -> tuple | None:
     """--state_window "LO,HI" -> (LO, HI) with 0 <= LO < HI <= 1, or None when empty (all t)."""
     if not args.state_window:
@@ -331,6 +340,8 @@ def parse_args(argv=None) -> Args:
                  "awm_timesteps", "save_every", "executor_ema_every"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.train_steps < 0:
+        p.error(f"--train_steps must be >= 1, or 0 for --sample_steps, got {args.train_steps}")
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
     if bad:
         p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
@@ -375,8 +386,9 @@ def parse_args(argv=None) -> Args:
             window = state_window(args)
         except ValueError as e:
             p.error(f"--state_window: {e}")
-        if not any(window[0] <= k / args.sample_steps < window[1] for k in range(args.sample_steps)):
-            p.error(f"--state_window {args.state_window}: no grid time k/{args.sample_steps} lies in [LO, HI)")
+        S = train_steps(args)
+        if not any(window[0] <= k / S < window[1] for k in range(S)):
+            p.error(f"--state_window {args.state_window}: no grid time k/{S} of the training rollouts lies in [LO, HI)")
         if not _draws_demonstrator_states(args):
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
@@ -689,14 +701,14 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
             c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
-                loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, args.sample_steps, True),
+                loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, train_steps(args), True),
                                                c_E, c_D, gen, window=state_window(args),
                                                motion_weight=args.distill_motion_weight)
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
-                loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, args.sample_steps),
+                loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, train_steps(args)),
                                               c_E, c_D, gen, state_window(args), args.distill_motion_weight)
             else:                   # App. A.2.1: G_theta from the Executor's own states, then the fake score
-                x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, args.sample_steps), c_E, gen)
+                x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, train_steps(args)), c_E, gen)
                 loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
                 fake_loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E, gen)
                 fake_opt.zero_grad(set_to_none=True)
@@ -954,9 +966,9 @@ def _rollouts(net, c: dict, x_0: torch.Tensor, args: Args, noises: torch.Tensor 
 
     with torch.no_grad():
         if noises is not None:
-            xs, ts, log_probs = flow.sample_sde(v, x_0, args.sample_steps, args.noise_level, noises=noises)
+            xs, ts, log_probs = flow.sample_sde(v, x_0, train_steps(args), args.noise_level, noises=noises)
         else:
-            (xs, ts), log_probs = flow.sample_ode(v, x_0, args.sample_steps, return_trajectory=True), None
+            (xs, ts), log_probs = flow.sample_ode(v, x_0, train_steps(args), return_trajectory=True), None
     return rl.Rollouts(xs, ts, c, log_probs, args.noise_level), torch.stack(vs)
 
 
@@ -1000,7 +1012,7 @@ def _group_batch(net, frame0, tasks, descs, args: Args, gen, sde: bool, prompts=
     off, n = _shard(N)
     rows, dev = slice(off, off + n), next(net.parameters()).device
     x_0 = torch.randn(N, *net.latent_shape(), generator=gen)
-    noises = torch.randn(args.sample_steps, N, *net.latent_shape(), generator=gen) if sde else None
+    noises = torch.randn(train_steps(args), N, *net.latent_shape(), generator=gen) if sde else None
     return SimpleNamespace(
         N=N, n=n, rows=rows, shard=(off, N), groups=torch.arange(N) // G,
         frame0=np.repeat(frame0, G, axis=0)[rows], tasks=[t for t in tasks for _ in range(G)][rows],
@@ -1050,8 +1062,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         def off_policy(p):
-            traj = (distill.rollout(teacher, b.x_0[p.rows], p.c_D, args.sample_steps) if teacher is not None else
-                    distill.rollout(model, b.x_0[p.rows], p.c_D, args.sample_steps, demonstrator=True))
+            traj = (distill.rollout(teacher, b.x_0[p.rows], p.c_D, train_steps(args)) if teacher is not None else
+                    distill.rollout(model, b.x_0[p.rows], p.c_D, train_steps(args), demonstrator=True))
             return distill.off_policy_loss(model, traj, p.c_E, p.c_D, gen, teacher, p.shard, state_window(args),
                                            args.distill_motion_weight), {}
         loss, gnorm, _ = _update(step, opt, params, parts, off_policy, gen, "off-policy")

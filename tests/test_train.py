@@ -180,6 +180,31 @@ def test_task_reward_attributed_trains_on_fig10s_judge(tiny_ckpt, tmp_path, monk
     assert len(seen) == args.tasks_per_step * args.group_size
 
 
+def test_train_steps_sets_the_training_rollouts_apart_from_evaluation(tiny_ckpt, tmp_path, monkeypatch):
+    """--train_steps (Sec. 4.6: fewer steps in training than in evaluation) reaches every training rollout -- the ODE
+    and SDE samplers of an rl step, the Demonstrator's of the off-policy setting, the distill stage's -- and leaves
+    evaluation at --sample_steps (TINY: 3); 0 means --sample_steps for both."""
+    flow, seen = train.flow, []
+    for name in ("sample_ode", "sample_sde"):
+        f = getattr(flow, name)
+        monkeypatch.setattr(flow, name, lambda v, x, steps, *a, _f=f, **k: seen.append(steps) or _f(v, x, steps, *a, **k))
+    for flags in ({}, {"trainer": "flow-grpo"}, {"executor_update": "off"}):
+        seen.clear()
+        _one_step(tiny_ckpt, tmp_path, train_steps=2, **flags)
+        assert seen and set(seen) == {2}, flags
+    seen.clear()
+    _one_step(tiny_ckpt, tmp_path, trainer="flow-grpo")
+    assert seen and set(seen) == {3}
+    seen.clear()
+    threads = torch.get_num_threads()
+    try:
+        train.main([*TINY, "--init", tiny_ckpt, "--stage", "distill", "--variant", "on", "--steps", "1", "--batch", "3",
+                    "--eval_n", "2", "--train_steps", "2", "--run_dir", str(tmp_path / "d")])
+    finally:
+        torch.set_num_threads(threads)
+    assert seen.count(2) == 1 and 3 in seen        # one training rollout of 2 steps; the evaluations at 3
+
+
 def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
@@ -188,6 +213,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
     assert not out.exists()
     assert "no state to resume" in exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--run_dir", out, "--resume"], capsys)
+    assert "--train_steps must be >= 1" in exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--run_dir", out,
+                                                                 "--train_steps", "-1"], capsys)
     assert not out.exists()
     # a state from other settings is refused, not silently continued
     d = tmp_path / "run"
