@@ -388,7 +388,7 @@ def parse_args(argv=None) -> Args:
             p.error(f"--state_window: {e}")
         S = train_steps(args)
         if not any(window[0] <= k / S < window[1] for k in range(S)):
-            p.error(f"--state_window {args.state_window}: no grid time k/{S} of the training rollouts lies in [LO, HI)")
+            p.error(f"--state_window {args.state_window}: no grid time k/{S} lies in [LO, HI)")
         if not _draws_demonstrator_states(args):
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
