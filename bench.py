@@ -9,11 +9,11 @@ One video per bench pair, generated from the pair's first frame and a prompt cho
   goal    "red square moves to the blue circle": the goal caption of T (probes what the base learned from
           goal-captioned pretraining clips, train.py --p_goal)
   instruction  "[red square]: move left 2 up 1 for 3 frames": the toy VLM's D in the task's form
-          (world.instruction_form; the prompt of the README's positive control, train.py --executor_prompt)
-  oracle_instruction  the error-free description in the task's form (the README's second control: c_E carries
+          (world.instruction_form; the prompt of docs/results.md's positive control, train.py --executor_prompt)
+  oracle_instruction  the error-free description in the task's form (docs/results.md's second control: c_E carries
           the right motion while the Demonstrator's D is still wrong 30% of the time)
   oracle_direction  "[red square]: move left 2 up 1": the same without its duration (world.direction_form; the
-          README's partial control: c_E carries part of the Demonstrator's decision)
+          docs/results.md's partial control: c_E carries part of the Demonstrator's decision)
 Each video is judged by reward.py on Task / Agent / Consistency (always against the task T). A score is
 successes / valid judgments; failures (no judgment possible) are counted, as in Tab. 4. Avg is the mean of the
 three scores; its successes/valid sum the per-video mean over videos with all three judgments valid. `solved`
@@ -423,7 +423,7 @@ def _patched(obj, name: str, value):
 
 
 def relate_probe(model, pairs: list, mode: str):
-    """Do a --relate base's U-Net read Relate's heads? (README, "Do the U-Nets of (f) and (e) read the heads?")
+    """Do a --relate base's U-Net read Relate's heads? (docs/given-t.md, "Do the U-Nets of (f) and (e) read the heads?")
     While active, Relate is altered for `pairs`, the bench pairs being evaluated, in order and in one batch (as
     models.generate conditions up to 200 prompts at once). "forced": heads 0 and 1 attend uniformly over the 3x3
     centre of the pair's true agent and target sprite, so they point in every pair; a head whose role names no

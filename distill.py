@@ -77,7 +77,7 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
     """One random grid state per sample: k ~ U{0 .. S-1} (the final state t = 1 is never an input of the sampler).
     xs (S+1, B, ...) -> x (B, ...), t (B,). shard = (offset, total): these B samples are rows offset.. of a batch of
     `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard).
-    window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window; the README's
+    window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window; docs/given-t.md's
     flow windows). Without one the draws are the same as with window (0, 1)."""
     k = _pick_index(xs, ts, generator, shard, window)
     return xs[k, torch.arange(xs.shape[1], device=xs.device)].detach(), ts[k]

@@ -147,7 +147,7 @@ class Grounding(nn.Module):
     between text and image tokens; the toy's U-Net only meets the text at its 4x4 bottleneck and in a pooled FiLM
     vector, so without this it had no short path from "to the blue circle" to where the blue circle is. Measured
     with 25% goal-captioned pretraining: goal captions 0.360 with it, 0.375 without -- no help; off in the shipped
-    base (README, "Why the Executor does not learn T here")."""
+    base (docs/results.md, "Why the Executor does not learn T here")."""
 
     def __init__(self, dim: int, heads: int, feat: int = 16):
         super().__init__()

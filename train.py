@@ -17,7 +17,7 @@
   python train.py --stage pretrain --seed 0          # rebuilds checkpoints/base.pt
   python train.py --toy                              # laptop preset: WMSD (Alg. 1) from the shipped base
   python train.py --stage distill --variant off,on,dmd --steps 100   # Fig. 4 left
-  python train.py --stage distill --variant off,on --executor_prompt instruction   # the positive control (README)
+  python train.py --stage distill --variant off,on --executor_prompt instruction   # the positive control (docs/results.md)
   python train.py --toy --executor_prompt oracle_instruction --steps 300   # the second control: c_E right, D not
   python train.py --stage distill --variant off,on --executor_prompt goal --init B.pt  # third: T as a goal caption
   torchrun --nproc_per_node 2 train.py --toy --threads 1             # the same run on 2 processes
@@ -135,13 +135,13 @@ class Args:
     executor_prompt: str = "task"
     """the Executor's text: task (T, the paper's c_E) | instruction (the toy VLM's D rewritten in the task's
     "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
-    control for the objectives, README; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
-    oracle_instruction (the error-free D in that form: the README's second control, where c_E carries the right
+    control for the objectives, docs/results.md; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
+    oracle_instruction (the error-free D in that form: docs/results.md's second control, where c_E carries the right
     motion and the Demonstrator's D is still wrong at the toy VLM's error rate) | oracle_direction (the same without
-    its duration, world.direction_form: "[red square]: move left 2 up 1" -- the partial control, README: c_E
+    its duration, world.direction_form: "[red square]: move left 2 up 1" -- the partial control, docs/results.md: c_E
     carries part of the Demonstrator's decision) | goal (T's words, and no more, as
     the goal caption pretraining showed -- world.goal_caption: "red square moves to the blue circle"; the third
-    control, README: does the Executor fail given T for T's information or for its unseen form?)"""
+    control, docs/given-t.md: does the Executor fail given T for T's information or for its unseen form?)"""
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
@@ -153,7 +153,7 @@ class Args:
     lora_alpha: float = 16.0
     """LoRA alpha (Table 3: 128 = 2 x rank)"""
     lora_convs: bool = False
-    """LoRA on the toy U-Net's convolutions too, not only its Linear layers (models.add_lora; README, "What the
+    """LoRA on the toy U-Net's convolutions too, not only its Linear layers (models.add_lora; docs/given-t.md, "What the
     Executor can learn given T")"""
     lora_embeddings: bool = False
     """LoRA on the toy text encoder's word table too (models.add_lora): lets the Executor move the rows of the words
@@ -163,7 +163,7 @@ class Args:
     train_steps: int = 0
     """Euler steps of the training rollouts (distill and rl stages); 0: --sample_steps, as in evaluation. Sec. 4.6:
     the paper trains with fewer steps than it evaluates with, for speed, and finds that the poorer training samples
-    make reward hacking likelier (README, "Fewer sampling steps in training")"""
+    make reward hacking likelier (docs/results.md, "Fewer sampling steps in training")"""
     error_rate: float = 0.3
     """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
     train_pairs: int = 512
@@ -183,12 +183,12 @@ class Args:
     clean-video error evenly and leaves the last, detail-making steps blurry; p = 1 sits between"""
     state_window: str = ""
     """"LO,HI": the Demonstrator's terms -- Eq. 3 (off), Eqs. 5/11 (on, and the rl stage's anchor) -- take their
-    states only from the sampler's grid times LO <= t_k < HI (README: where the motion is decided); empty: all t.
+    states only from the sampler's grid times LO <= t_k < HI (docs/given-t.md: where the motion is decided); empty: all t.
     r_distill (Eq. 9) still integrates over the whole trajectory"""
     distill_motion_weight: float = 1.0
     """Eq. 4's squared error in the Demonstrator's terms (Eqs. 3, 5, 9, 11) with the pixels the Demonstrator moves
     weighed this many times the others, as pretraining weighs moving pixels (--motion_weight); 1 = the paper's plain
-    norm. Ours, toy model only (distill.squared_error; README)"""
+    norm. Ours, toy model only (distill.squared_error; docs/results.md)"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
@@ -498,7 +498,7 @@ def pointing_loss(model, frame0: np.ndarray, captions: list[str], places: np.nda
     term). A real base learns where "the blue circle" is from web-scale captions; the toy's heads did not from the
     video loss alone, so pretraining says it outright. The U-Net's encoding of the caption is detached here: this
     loss trains Relate's query MLP and keys (and, with --relate_text, Relate's own text encoder), not the text
-    encoder the U-Net reads D through. Measured (README, "Teaching the offset heads to point"): with the gradient
+    encoder the U-Net reads D through. Measured (docs/given-t.md, "Teaching the offset heads to point"): with the gradient
     into the text encoder, and head 1 supervised on goal captions only, the heads pointed but D-following broke
     (error-free D 0.345). goal_only (--point_goal_only) is that form: no head-1 term where its place is the mover's."""
     a, _ = model.relate_attention(model.condition(frame0, captions), detach_text=True)  # (B, heads, HW)
@@ -779,7 +779,7 @@ def plot_fig4_left(results: dict, path: str) -> None:
 def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) -> None:
     """Rows: bench pairs; left: the Demonstrator given the toy VLM's D, right: the Executor given T (or its
     --executor_prompt; same noise). A real model's videos are thinned to 24 frames and rows of at most 128 px: at
-    LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, README).
+    LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, docs/real-models.md).
     Only the toy's 16-px rows are enlarged (8x); the scale once came from the first frames, which are the toy
     bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured)."""
     from PIL import Image

@@ -192,7 +192,7 @@ def instruction_form(d: str) -> str:
     """A description D rewritten in the task's "[agent]: instruction" form, e.g. "red square moves left 2 up 1
     for 3 frames then stops" -> "[red square]: move left 2 up 1 for 3 frames", "camera pans right 1 for 2 frames
     then stops" -> "[first-person view]: move right 1 for 2 frames". The same information as D (errors included) in
-    a format the base never saw in pretraining: the Executor's prompt in the README's positive control
+    a format the base never saw in pretraining: the Executor's prompt in docs/results.md's positive control
     (train.py --executor_prompt instruction), where c_E carries what c_D carries and only the form differs."""
     m = re.fullmatch(r"(camera pans|(?P<agent>\w+ \w+) moves) (?P<motion>.+?)( then stops)?", d.strip())
     if not m:
@@ -203,7 +203,7 @@ def instruction_form(d: str) -> str:
 def direction_form(d: str) -> str:
     """instruction_form without the duration: "red square moves left 2 up 1 for 3 frames then stops" ->
     "[red square]: move left 2 up 1". Who moves, which way and how fast, not for how long: part of D's decision.
-    The Executor's prompt in the README's partial control (train.py --executor_prompt oracle_direction), between T
+    The Executor's prompt in docs/results.md's partial control (train.py --executor_prompt oracle_direction), between T
     (none of the motion) and the second control (all of it)."""
     return re.sub(r" for \d+ frames?$", "", instruction_form(d))
 

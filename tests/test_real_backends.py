@@ -177,7 +177,7 @@ def test_an_offloaded_text_encoder_visits_for_each_encoding_and_gives_the_same_c
     the transformer's device and afterwards are their CPU originals again (the same tensors, nothing copied back).
     Checked with a cast to float64 standing in for the copy to a GPU, which this machine lacks (Tensor.to takes
     either): inside the block every weight is a new tensor, after it every weight is the original. The condition is
-    the same as without offloading. (That the copy goes to the GPU and saves its memory was measured on one: README,
+    the same as without offloading. (That the copy goes to the GPU and saves its memory was measured on one: docs/real-models.md,
     a real-size step on a GPU.)"""
     m, f0, c_E, _ = _tiny(cls)
     models.offload(m.text_encoder)
