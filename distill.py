@@ -177,6 +177,20 @@ def distill_reward(model, student_traj, c_E: dict, c_D: dict, per_step: bool = F
     return terms if per_step else terms.sum(1)
 
 
+def distill_reward_to_go(terms: torch.Tensor) -> torch.Tensor:
+    """App. A.3's per-step distillation reward as the credit of each transition of the sampler. The transition
+    x_{t_k} -> x_{t_{k+1}} (the SDE's action a_k, App. A.9) can change only the states after it, so it is credited
+    with the per-step terms of Eq. 9 from step k + 1 on,
+
+        G_k = sum_{j=k+1}^{S-1} r_j,      r_j = -(t_{j+1} - t_j) l(x_{t_j}, t_j)      (distill_reward(per_step=True)),
+
+    where the trajectory-level form credits every transition with all of sum_j r_j, the terms before it included.
+    terms (B, S) -> (B, S). G_{S-1} = 0: the last transition makes x_1, where the Riemann sum has no term; r_0, at
+    the pure noise x_0, credits no transition."""
+    to_go = terms.flip(1).cumsum(1).flip(1)                  # sum_{j >= k} r_j
+    return torch.cat([to_go[:, 1:], torch.zeros_like(to_go[:, :1])], 1)
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # the DMD variant (App. A.2.1, Eqs. 13-22)
 # ----------------------------------------------------------------------------------------------------------------

@@ -50,7 +50,10 @@ def group_advantages(r: torch.Tensor, groups: torch.Tensor, eps: float = 1e-6) -
     """App. A.9: A_i = (r_i - mu_r) / (sigma_r + eps), mu_r and sigma_r (population std, 1/G) over the G rollouts of
     the same (image, task). r: (N,), groups: (N,) integer group ids. A rollout whose reward is NaN (no judgment
     possible, Tab. 4) is skipped: it gets A = 0 and does not enter mu or sigma. A group whose rewards are all equal
-    gets A = 0 (not NaN): it carries no preference."""
+    gets A = 0 (not NaN): it carries no preference. A per-step reward r (N, S) (App. A.3: one per rollout and
+    transition) is normalised step by step, column k over the group's G values of step k: A (N, S)."""
+    if r.dim() == 2:
+        return torch.stack([group_advantages(r[:, k], groups, eps) for k in range(r.shape[1])], 1)
     A = torch.zeros_like(r)
     ok = torch.isfinite(r)
     for g in groups.unique():
@@ -73,8 +76,13 @@ def advantages(rewards: dict, weights: dict, groups: torch.Tensor, mode: str = "
             the scale by hand; under `gdpo` each reward contributes in units of its own within-group spread.
 
     A rollout with any non-finite reward gets A = 0. Advantages are then clipped to [-clip, clip] (AWM and
-    Flow-GRPO clip at 5). Returns (N,)."""
+    Flow-GRPO clip at 5). Returns (N,). A per-step reward (N, S) (App. A.3; train.py --distill_reward per_step)
+    makes the advantages per step, (N, S): the per-rollout rewards count alike at every step, and gdpo's batch
+    standardisation runs over all N x S; only the per-transition objectives (grpo, flow_grpo) take them."""
     used = {k: r for k, r in rewards.items() if weights.get(k, 0) != 0}
+    S = max((r.shape[1] for r in used.values() if r.dim() == 2), default=0)
+    if S:
+        used = {k: r if r.dim() == 2 else r[:, None].expand(-1, S) for k, r in used.items()}
     bad = ~torch.stack([torch.isfinite(r) for r in used.values()]).all(0)
     if mode == "sum":
         A = group_advantages(total_reward(used, weights).masked_fill(bad, float("nan")), groups, eps)
@@ -181,6 +189,18 @@ def _step_log_probs(model, ro: Rollouts, with_mean: bool = False):
     return (lp, torch.stack(mus), torch.stack(ss)) if with_mean else lp
 
 
+def _per_step(A: torch.Tensor) -> torch.Tensor:
+    """Advantages as (N, S) or broadcastable to it: per-rollout A (N,) -> (N, 1); per-step A (N, S) as it is."""
+    return A if A.dim() == 2 else A[:, None]
+
+
+def _per_sample(A: torch.Tensor, name: str) -> torch.Tensor:
+    if A.dim() != 1:
+        raise ValueError(f"{name} scores whole samples, not transitions: per-step advantages (App. A.3, "
+                         "--distill_reward per_step) need a per-transition objective, grpo or flow-grpo")
+    return A
+
+
 def _need_sde(ro: Rollouts, name: str):
     if ro.log_probs is None:
         raise ValueError(f"{name} needs SDE rollouts with log-probs (flow.sample_sde); got ODE rollouts")
@@ -189,10 +209,11 @@ def _need_sde(ro: Rollouts, name: str):
 def grpo(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     """App. A.9 (GRPO [52]): L_GRPO = -E_T [ (1/G) sum_i A_i log p_theta(tau_i | T) ], with the rollout's
     log-likelihood the sum of its S Gaussian transitions' log-probs, log p(tau) = sum_k log p(x_{k+1} | x_k)
-    (each a mean over dimensions, flow.sde_step). The plain policy gradient: no ratio, no clip."""
+    (each a mean over dimensions, flow.sde_step). The plain policy gradient: no ratio, no clip. With per-step
+    advantages A (N, S) (App. A.3) each transition k is weighted by its own A_k^i: -mean_i sum_k A_k^i log p_k^i."""
     _need_sde(ro, "grpo")
     lp = _step_log_probs(model, ro)                                     # (N, S)
-    loss = -(A * lp.sum(1)).mean()
+    loss = -(_per_step(A) * lp).sum(1).mean()
     return loss, {"log_prob": lp.sum(1).mean().item()}
 
 
@@ -210,11 +231,12 @@ def flow_grpo(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=Non
         r_k^i = p_theta(x_{k+1}^i | x_k^i, c) / p_theta_old(x_{k+1}^i | x_k^i, c),
 
     with the old log-probs those recorded by the sampler (ro.log_probs) and the KL between the two Gaussian
-    transitions in closed form (same std, so only the means differ: gaussian_kl). Returned as the loss -J."""
+    transitions in closed form (same std, so only the means differ: gaussian_kl). Returned as the loss -J.
+    Per-step advantages A (N, S) (App. A.3) replace A^i by A_k^i in step k's term."""
     _need_sde(ro, "flow_grpo")
     lp, mu, s = _step_log_probs(model, ro, with_mean=True)             # (N, S), (S, N, ...), (S, N)
     ratio = (lp - ro.log_probs).exp()
-    loss = _ppo(ratio, A[:, None], cfg.clip_range).mean()
+    loss = _ppo(ratio, _per_step(A), cfg.clip_range).mean()
     info = {"ratio_mean": ratio.mean().item(), "clip_frac": ((ratio - 1).abs() > cfg.clip_range).float().mean().item()}
     if cfg.kl_beta > 0:
         N, kls = ro.xs.shape[1], []
@@ -291,7 +313,7 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     loss max(-A r, -A clip(r)) is minimised. At ratio 1 its gradient is A grad rho: positive advantages lower the
     flow-matching loss of good samples, negative ones raise it for bad ones. Optional velocity-space KL to the
     reference (the base under c_E): kl_beta ||v_theta - v_ref||^2. Works on ODE or SDE rollouts (only x_1 is used)."""
-    N, n_t = ro.x1.shape[0], cfg.timesteps
+    N, n_t, A = ro.x1.shape[0], cfg.timesteps, _per_sample(A, "awm")
     x_t, t, u = _renoise(ro, n_t, generator, cfg.times)
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)
@@ -328,7 +350,7 @@ def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
     Good samples pull v+ (and so v_theta) towards their flow, bad ones push v- towards theirs -- i.e. v_theta away.
     No likelihood and no sampler in the loss: any sampler can produce x_1."""
-    n_t = cfg.timesteps
+    n_t, A = cfg.timesteps, _per_sample(A, "nft")
     x_t, t, u = _renoise(ro, n_t, generator, cfg.times)
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)

@@ -245,10 +245,18 @@ class Args:
     addressed agent alone: reward.judge_task_reward). A VLM judge always asks Fig. 10's prompt"""
     lambda_distill: float = 1.0
     """Eq. 10: weight of r_distill (Eq. 9); 0 = no distillation reward"""
+    distill_reward: str = "trajectory"
+    """r_distill in the advantages: trajectory (Eq. 9, the main text's: one per rollout) | per_step (App. A.3: each
+    transition of the sampler credited with Eq. 9's terms after it, distill.distill_reward_to_go, and advantages per
+    step; for the per-transition trainers grpo and flow-grpo)"""
     lambda_cons: float = 1.0
     """weight of the consistency judge's score (Sec. 4.1 "Rewards"); 0 = without it (paper Fig. 8)"""
     beta_d: float = 1.0
     """Eq. 12: weight of the Demonstrator anchor (Eq. 11); 0 = RL without the anchor"""
+    demonstrator: str = "base"
+    """who gives v_theta'(x_t, t | c_D) in Eqs. 9 and 11: base (the fixed base, adapters off: the paper's main
+    setting) | executor (the Executor's own current weights under c_D: App. A.3's shared weights, which the paper
+    found unstable)"""
     adv_agg: str = "gdpo"
     """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
     adv_clip: float = 5.0
@@ -351,6 +359,7 @@ def parse_args(argv=None) -> Args:
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("awm_times", ("uniform", "grid")),
                           ("executor_update", ("wmsd", "off")),
+                          ("distill_reward", ("trajectory", "per_step")), ("demonstrator", ("base", "executor")),
                           ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
@@ -392,6 +401,13 @@ def parse_args(argv=None) -> Args:
         if not _draws_demonstrator_states(args):
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
+    if args.distill_reward == "per_step" and (args.stage != "rl" or args.trainer not in rl.NEEDS_SDE
+                                              or args.lambda_distill == 0):
+        p.error(f"--distill_reward per_step gives each transition its own advantage: it needs --stage rl, a "
+                f"per-transition --trainer ({' or '.join(rl.NEEDS_SDE)}) and --lambda_distill > 0")
+    if args.demonstrator == "executor" and (args.stage != "rl" or args.alternate):
+        p.error("--demonstrator executor is the rl stage's Alg. 1 with a moving Demonstrator; --alternate trains a "
+                "Demonstrator of its own")
     if args.distill_motion_weight <= 0:
         p.error(f"--distill_motion_weight must be > 0, got {args.distill_motion_weight}")
     if args.distill_motion_weight != 1 and args.model != "toy":
@@ -847,6 +863,8 @@ def fig5_setting(args: Args) -> str:
         return "off-policy distillation + RL on the teacher"
     if args.beta_d == 0 and args.lambda_distill == 0:
         return "RL from the judges alone"
+    if args.demonstrator == "executor":
+        return "WMSD, the Executor as its own Demonstrator (App. A.3)"
     return "WMSD, alternating (Alg. 2)" if args.alternate else "WMSD"
 
 
@@ -1074,9 +1092,14 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     local = judge_rollouts(videos, tasks, args.task_reward)
     for p in parts:   # the Demonstrator along the Executor's trajectories: Eq. 9 uses them all, Eq. 11 one each
         p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, teacher) if args.lambda_distill > 0 else None
-    local["distill"] = (torch.cat([distill.distill_reward(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, student_v=p.vs,
-                                                          teacher_v=p.vD, motion_weight=args.distill_motion_weight)
-                                   for p in parts]).cpu() if args.lambda_distill > 0 else torch.zeros(n))
+    local["distill"] = local["r_distill"] = torch.zeros(n)
+    if args.lambda_distill > 0:   # Eq. 9's terms (n, S): their sum is r_distill; App. A.3 credits them per transition
+        terms = torch.cat([distill.distill_reward(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, per_step=True,
+                                                  student_v=p.vs, teacher_v=p.vD,
+                                                  motion_weight=args.distill_motion_weight) for p in parts]).cpu()
+        local["distill"] = local["r_distill"] = terms.sum(1)
+        if args.distill_reward == "per_step":
+            local["distill"] = distill.distill_reward_to_go(terms)
     # every reward lives on the CPU beside the judges' (advantages are computed there, then sent to the device)
     rewards = {k: _gather(v) for k, v in local.items()}
     for k in ("task", "consistency"):
@@ -1104,9 +1127,11 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     return {"loss": _mean_over_processes(loss), "l_rl": _mean_over_processes(l_rl),
             "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor),
             "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
-            "r_distill": float(rewards["distill"].mean()), "solved": _mean(rewards["solved"]),
+            "r_distill": float(rewards["r_distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
-            "adv_abs": float(A_all.abs().mean()), "A": [round(a, 6) for a in A_all.tolist()],
+            "adv_abs": float(A_all.abs().mean()),
+            "A": [round(a, 6) for a in A_all.tolist()] if A_all.dim() == 1 else [[round(a, 6) for a in row]
+                                                                                 for row in A_all.tolist()],
             "rollouts_per_s": N / max(t1 - t0, 1e-9),
             "sample_s": t1 - t0, "reward_s": t2 - t1, "update_s": time.time() - t2,
             **{k: _mean_over_processes(v) for k, v in info.items()}}
@@ -1288,6 +1313,8 @@ def rl_stage(args: Args) -> dict:
     models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
+    # the Demonstrator of Eqs. 9, 11: the fixed base (None: adapters off), Alg. 2's phi, or the Executor itself (A.3)
+    teacher = demo_net if demo_net is not None else (model if args.demonstrator == "executor" else None)
     ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the base
     cfg = rl_config(args)
     first, log_mode, evals = 1, "w", []
@@ -1334,7 +1361,7 @@ def rl_stage(args: Args) -> dict:
             if args.alternate > 0 and step % args.alternate == 0:
                 rec = demonstrator_round(step, demo_net, demo_opt, demo_params, args, cfg, frame0, tasks, descs, gen)
             else:
-                rec = rl_step(step, model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=demo_net,
+                rec = rl_step(step, model, opt, params, args, cfg, frame0, tasks, descs, gen, teacher=teacher,
                               prompts=prompts)
         except TrainingFault as e:
             last = f"the last good state {state_path} is intact" if os.path.exists(state_path) else \

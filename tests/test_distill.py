@@ -33,6 +33,12 @@ def test_eq9_matches_a_hand_computed_integral():
     per_step = distill.distill_reward(m, traj, {"a": a_E}, {"a": a_D}, per_step=True)
     assert per_step.shape == (2, S) and torch.allclose(per_step.sum(1), r)
     assert torch.all(distill.distill_reward(m, traj, {"a": a_E}, {"a": a_E}) == 0)
+    # App. A.3 as credit: transition k (x_k -> x_{k+1}) gets the terms after it, sum_{j > k} r_j; the last gets 0
+    G = distill.distill_reward_to_go(per_step)
+    want_G = torch.stack([per_step[:, k + 1:].sum(1) for k in range(S)], 1)
+    assert G.shape == (2, S) and torch.allclose(G, want_G) and torch.equal(G[:, -1], torch.zeros(2))
+    assert torch.equal(distill.distill_reward_to_go(torch.tensor([[-1.0, -2.0, -3.0, -4.0]])),
+                       torch.tensor([[-9.0, -7.0, -4.0, 0.0]]))
 
 
 @pytest.fixture(scope="module")

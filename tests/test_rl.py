@@ -53,6 +53,30 @@ def test_reward_aggregation_on_a_hand_made_group():
         rl.advantages(rewards, w, g, "mean")
 
 
+def test_per_step_rewards_give_per_step_advantages():
+    """App. A.3's per-step r_distill: a reward of shape (N, S) makes advantages (N, S), each step normalised over its
+    group as a per-rollout reward is; per-rollout rewards count alike at every step; a NaN zeroes its rollout."""
+    g = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1])
+    r_task = torch.tensor([1.0, 2.0, 3.0, 4.0, 0.0, 0.0, 1.0, 1.0])
+    r_step = torch.randn(8, 3, generator=torch.Generator().manual_seed(0))
+    r_step[:, 2] = 0.0                                      # the last transition's credit is 0 for every rollout
+    A = rl.group_advantages(r_step, g)
+    assert A.shape == (8, 3) and torch.equal(A[:, 2], torch.zeros(8))
+    for k in range(2):
+        assert torch.equal(A[:, k], rl.group_advantages(r_step[:, k], g))
+    w = {"task": 1.0, "distill": 1.0}
+    A_sum = rl.advantages({"task": r_task, "distill": r_step}, w, g, "sum", clip=None)
+    for k in range(3):
+        assert torch.allclose(A_sum[:, k], rl.advantages({"task": r_task, "distill": r_step[:, k]}, w, g, "sum",
+                                                         clip=None))
+    A_gdpo = rl.advantages({"task": r_task, "distill": r_step}, w, g, "gdpo", clip=None)
+    assert A_gdpo.shape == (8, 3)
+    assert abs(A_gdpo.mean().item()) < 1e-6 and abs(A_gdpo.std(unbiased=False).item() - 1) < 1e-4   # over all N x S
+    r_task[1] = float("nan")
+    A = rl.advantages({"task": r_task, "distill": r_step}, w, g, "gdpo")
+    assert torch.equal(A[1], torch.zeros(3)) and torch.isfinite(A).all()
+
+
 def test_final_loss_is_eq12():
     assert rl.final_loss(torch.tensor(2.0), torch.tensor(3.0), 0.5).item() == 3.5
     assert rl.final_loss(torch.tensor(2.0), None, 0.5).item() == 2.0
@@ -134,6 +158,31 @@ def test_first_inner_step_ratio_is_one():
     for name in ("flow-grpo", "awm"):
         _, info = rl.OBJECTIVES[name](model, ro, A, cfg)
         assert abs(info["ratio_mean"] - 1) < 1e-6
+
+
+def test_per_step_advantages_weigh_each_transition_and_only_transition_objectives_take_them():
+    """grpo and flow_grpo take A (N, S): a per-rollout A repeated at every step is the per-rollout loss, and an
+    advantage on one step alone moves only that step's term; awm and nft score whole samples and refuse it."""
+    torch.manual_seed(0)
+    model = Tiny()
+    models.add_lora(model, 2, 4.0)
+    for name, p in model.named_parameters():
+        if "lora_B" in name:
+            p.data.normal_(0, 0.1)
+    ro = _tiny_rollouts(model)
+    A, S, cfg = torch.randn(8), ro.xs.shape[0] - 1, rl.RLConfig()
+    for name in ("grpo", "flow-grpo"):
+        one, _ = rl.OBJECTIVES[name](model, ro, A, cfg)
+        per, _ = rl.OBJECTIVES[name](model, ro, A[:, None].expand(-1, S), cfg)
+        assert torch.allclose(one, per, atol=1e-6), name
+    lp = rl._step_log_probs(model, ro).detach()                     # (N, S)
+    A_k = torch.zeros(8, S)
+    A_k[:, 1] = A
+    loss, _ = rl.grpo(model, ro, A_k, cfg)
+    assert torch.allclose(loss, -(A * lp[:, 1]).mean(), atol=1e-6)      # only step 1's log-probs count
+    for name in ("awm", "nft"):
+        with pytest.raises(ValueError, match="per-transition"):
+            rl.OBJECTIVES[name](model, ro, A_k, cfg)
 
 
 def test_ppo_clip_as_stated():

@@ -464,6 +464,38 @@ def test_the_final_table_names_the_fig5_setting_the_flags_select():
     assert name("--beta_d", "0", "--lambda_distill", "0") == "RL from the judges alone"
     assert name("--alternate", "2") == "WMSD, alternating (Alg. 2)"
     assert name("--alternate", "2", "--executor_update", "off") == "off-policy distillation + RL on the teacher"
+    assert name("--demonstrator", "executor") == "WMSD, the Executor as its own Demonstrator (App. A.3)"
+
+
+def test_per_step_r_distill_trains_flow_grpo_on_per_step_advantages(tiny_ckpt, tmp_path):
+    """--distill_reward per_step (App. A.3): advantages per (rollout, transition); the logged r_distill is still
+    Eq. 9's trajectory sum, so it equals the trajectory-level run's on the same first step."""
+    traj, _, _, _ = _one_step(tiny_ckpt, tmp_path, trainer="flow-grpo")
+    per, grads, _, _ = _one_step(tiny_ckpt, tmp_path, trainer="flow-grpo", distill_reward="per_step")
+    S = train.train_steps(_args(tiny_ckpt, tmp_path))
+    assert len(per["A"]) == 8 and all(len(a) == S for a in per["A"])          # 2 tasks x a group of 4, S steps
+    assert len(traj["A"]) == 8 and not isinstance(traj["A"][0], list)
+    assert per["r_distill"] == traj["r_distill"] < 0
+    assert per["loss"] != traj["loss"] and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_demonstrator_executor_reads_the_executors_own_weights_under_d(tiny_ckpt, tmp_path):
+    """--demonstrator executor (App. A.3's shared weights): at step 1 the LoRA is zero, so the Executor under c_D is
+    the base and the run logs what the fixed-Demonstrator run logs; from step 2 on the Demonstrator is the updated
+    Executor, and r_distill (Eq. 9) differs. Fails if the flag does not reach Eqs. 9 and 11."""
+    logs = {}
+    for who in ("base", "executor"):
+        d = tmp_path / who
+        threads = torch.get_num_threads()
+        try:
+            train.main([*TINY, "--init", tiny_ckpt, "--steps", "2", "--eval_every", "2", "--demonstrator", who,
+                        "--run_dir", str(d)])
+        finally:
+            torch.set_num_threads(threads)
+        logs[who] = [r for r in _metrics(d / "rl.jsonl") if not r.get("eval")]
+    base, own = logs["base"], logs["executor"]
+    assert base[0] == own[0]
+    assert base[1]["r_distill"] != own[1]["r_distill"]
 
 
 def _dataset(d, seed: int, n: int) -> str:
