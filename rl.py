@@ -197,7 +197,8 @@ def _per_step(A: torch.Tensor) -> torch.Tensor:
 def _per_sample(A: torch.Tensor, name: str) -> torch.Tensor:
     if A.dim() != 1:
         raise ValueError(f"{name} scores whole samples, not transitions: per-step advantages (App. A.3, "
-                         "--distill_reward per_step) need a per-transition objective, grpo or flow-grpo")
+                         "--distill_reward per_step) need a per-transition objective: grpo, flow-grpo, or awm "
+                         "re-noising on the sampler's grid with exp_first")
     return A
 
 
@@ -312,9 +313,18 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     ("exp_first", Tab. 3) or from the time-averaged log-likelihoods, once per sample ("sum_first"), and the PPO
     loss max(-A r, -A clip(r)) is minimised. At ratio 1 its gradient is A grad rho: positive advantages lower the
     flow-matching loss of good samples, negative ones raise it for bad ones. Optional velocity-space KL to the
-    reference (the base under c_E): kl_beta ||v_theta - v_ref||^2. Works on ODE or SDE rollouts (only x_1 is used)."""
-    N, n_t, A = ro.x1.shape[0], cfg.timesteps, _per_sample(A, "awm")
+    reference (the base under c_E): kl_beta ||v_theta - v_ref||^2. Works on ODE or SDE rollouts (only x_1 is used).
+    Per-step advantages A (N, S) (App. A.3) need re-noising on the sampler's grid and exp_first: the term at
+    t = t_k, which trains the velocity the sampler's transition k reads, takes that transition's A_k^i."""
+    N, n_t = ro.x1.shape[0], cfg.timesteps
+    if A.dim() == 2 and (cfg.times != "grid" or cfg.ratio != "exp_first"):
+        _per_sample(A, "awm with uniform re-noising times or sum_first")
     x_t, t, u = _renoise(ro, n_t, generator, cfg.times)
+    if A.dim() == 2:        # the grid index k of each re-noised time (t is one of ro.ts[:-1] exactly): A_k^i, (n_t, N)
+        k = torch.searchsorted(ro.ts[:-1].contiguous(), t.contiguous()).reshape(n_t, N)
+        A = A.T.gather(0, k)
+    else:
+        A = A[None]
     c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
     v = model(x_t, t, c)
     logp = -awm_weight(_sq(v - u), t, cfg.weighting, cfg.ghuber_power).reshape(n_t, N)    # (n_t, N)
@@ -323,10 +333,10 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     old = ro.draws["awm_old"]
     if cfg.ratio == "exp_first":
         ratio = (logp - old).exp()                                                         # (n_t, N)
-        loss = _ppo(ratio, A[None], cfg.clip_range).mean()
+        loss = _ppo(ratio, A, cfg.clip_range).mean()
     elif cfg.ratio == "sum_first":
         ratio = (logp.mean(0) - old.mean(0)).exp()                                         # (N,)
-        loss = _ppo(ratio, A, cfg.clip_range).mean()
+        loss = _ppo(ratio, A[0], cfg.clip_range).mean()
     else:
         raise ValueError(f"unknown AWM ratio {cfg.ratio!r}; choose exp_first or sum_first")
     info = {"fm_err": (-logp).mean().item(), "ratio_mean": ratio.mean().item()}

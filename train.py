@@ -248,7 +248,7 @@ class Args:
     distill_reward: str = "trajectory"
     """r_distill in the advantages: trajectory (Eq. 9, the main text's: one per rollout) | per_step (App. A.3: each
     transition of the sampler credited with Eq. 9's terms after it, distill.distill_reward_to_go, and advantages per
-    step; for the per-transition trainers grpo and flow-grpo)"""
+    step; for the per-transition trainers grpo and flow-grpo, and awm re-noising on the grid with exp_first)"""
     lambda_cons: float = 1.0
     """weight of the consistency judge's score (Sec. 4.1 "Rewards"); 0 = without it (paper Fig. 8)"""
     beta_d: float = 1.0
@@ -401,10 +401,12 @@ def parse_args(argv=None) -> Args:
         if not _draws_demonstrator_states(args):
             p.error("--state_window picks the states of Eq. 3 and Eqs. 5/11: it needs --stage distill with --variant "
                     "off or on, or --stage rl with the anchor on (--beta_d > 0) or --executor_update off")
-    if args.distill_reward == "per_step" and (args.stage != "rl" or args.trainer not in rl.NEEDS_SDE
-                                              or args.lambda_distill == 0):
-        p.error(f"--distill_reward per_step gives each transition its own advantage: it needs --stage rl, a "
-                f"per-transition --trainer ({' or '.join(rl.NEEDS_SDE)}) and --lambda_distill > 0")
+    per_transition = args.trainer in rl.NEEDS_SDE or (args.trainer == "awm" and args.awm_times == "grid"
+                                                      and args.awm_ratio == "exp_first")
+    if args.distill_reward == "per_step" and (args.stage != "rl" or not per_transition or args.lambda_distill == 0):
+        p.error(f"--distill_reward per_step gives each transition its own advantage: it needs --stage rl, "
+                f"--lambda_distill > 0 and a trainer with a term per transition: {' or '.join(rl.NEEDS_SDE)}, or awm "
+                f"with --awm_times grid and --awm_ratio exp_first")
     if args.demonstrator == "executor" and (args.stage != "rl" or args.alternate):
         p.error("--demonstrator executor is the rl stage's Alg. 1 with a moving Demonstrator; --alternate trains a "
                 "Demonstrator of its own")

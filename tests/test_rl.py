@@ -180,9 +180,23 @@ def test_per_step_advantages_weigh_each_transition_and_only_transition_objective
     A_k[:, 1] = A
     loss, _ = rl.grpo(model, ro, A_k, cfg)
     assert torch.allclose(loss, -(A * lp[:, 1]).mean(), atol=1e-6)      # only step 1's log-probs count
-    for name in ("awm", "nft"):
-        with pytest.raises(ValueError, match="per-transition"):
-            rl.OBJECTIVES[name](model, ro, A_k, cfg)
+    with pytest.raises(ValueError, match="per-transition"):
+        rl.nft(model, ro, A_k, cfg)
+    # AWM takes them only on the sampler's grid (exp_first): the term at t = t_k gets A_k
+    with pytest.raises(ValueError, match="per-transition"):
+        rl.awm(model, ro, A_k, cfg)                                             # uniform re-noising times
+    grid = rl.RLConfig(times="grid", timesteps=3)
+    one, _ = rl.awm(model, _tiny_rollouts(model, seed=1), A, grid, torch.Generator().manual_seed(0))
+    per, _ = rl.awm(model, _tiny_rollouts(model, seed=1), A[:, None].expand(-1, S), grid,
+                    torch.Generator().manual_seed(0))
+    assert torch.allclose(one, per, atol=1e-7)
+    ro = _tiny_rollouts(model, seed=1)
+    A_rand = torch.randn(8, S)
+    loss, _ = rl.awm(model, ro, A_rand, grid, torch.Generator().manual_seed(0))
+    _, t, _ = ro.draws["renoise"]
+    k = torch.searchsorted(ro.ts[:-1], t).reshape(3, 8)                      # the grid step of each re-noised time
+    assert torch.equal(ro.ts[:-1][k].reshape(-1), t)
+    assert torch.allclose(loss, -(A_rand.T.gather(0, k)).mean(), atol=1e-6)   # ratio 1: loss = -mean A_k^i
 
 
 def test_ppo_clip_as_stated():
