@@ -78,7 +78,8 @@ def advantages(rewards: dict, weights: dict, groups: torch.Tensor, mode: str = "
     A rollout with any non-finite reward gets A = 0. Advantages are then clipped to [-clip, clip] (AWM and
     Flow-GRPO clip at 5). Returns (N,). A per-step reward (N, S) (App. A.3; train.py --distill_reward per_step)
     makes the advantages per step, (N, S): the per-rollout rewards count alike at every step, and gdpo's batch
-    standardisation runs over all N x S; only the per-transition objectives (grpo, flow_grpo) take them."""
+    standardisation runs over all N x S; the per-transition objectives take them (grpo, flow_grpo, and awm on the
+    sampler's grid)."""
     used = {k: r for k, r in rewards.items() if weights.get(k, 0) != 0}
     S = max((r.shape[1] for r in used.values() if r.dim() == 2), default=0)
     if S:
