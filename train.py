@@ -256,7 +256,7 @@ class Args:
     demonstrator: str = "base"
     """who gives v_theta'(x_t, t | c_D) in Eqs. 9 and 11: base (the fixed base, adapters off: the paper's main
     setting) | executor (the Executor's own current weights under c_D: App. A.3's shared weights, which the paper
-    found unstable)"""
+    found unstable; on the toy every seed collapsed to a still video by iteration 220, docs/results.md)"""
     adv_agg: str = "gdpo"
     """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
     adv_clip: float = 5.0
