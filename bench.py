@@ -138,6 +138,15 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
     return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
 
 
+def still_videos(videos: np.ndarray, level: int = 16) -> int:
+    """How many videos show nothing moving: no pixel's colour differs from the first frame's by more than `level` of
+    255 in any frame (ours, not a paper column). A network that makes the same still video whatever the prompt -- the
+    collapse of App. A.3's Executor-as-its-own-Demonstrator -- is scored plausible by the consistency judge, and
+    Eqs. 9 and 11 read it as perfect agreement; this count is where the bench shows it. videos: uint8 (n, F, H, W, 3)."""
+    v = videos.astype(np.int16)
+    return int((np.abs(v[:, 1:] - v[:, :1]).max(axis=(1, 2, 3, 4), initial=0) <= level).sum())
+
+
 def kind_scores(pairs: list, judgments: list[dict]) -> dict:
     """Task score per kind of toy task (world.Task.kind: move_to, level_with, centre; edge tasks by side), finer
     than Fig. 7's families: it tells the tasks whose direction T's words name ("go to the left edge") from those
@@ -190,7 +199,7 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
                seconds=seconds, seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
                kinds=kind_scores(pairs, judgments), by_vlm_error=vlm_error_scores(pairs, judgments),
-               faults=consistency_faults(judgments))
+               faults=consistency_faults(judgments), still=still_videos(videos) / max(len(pairs), 1))
     return res, videos, pairs
 
 
@@ -480,6 +489,9 @@ def format_table(res: dict, title: str = "") -> str:
     if res["by_vlm_error"]:   # not known on a real-image bench
         rows.append("task by the toy VLM's D: "
                     + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+    if "still" in res:   # results saved before the count existed lack it
+        rows.append(f"still videos (no pixel moved > 16 levels from the first frame): {res['still']:.3f} "
+                    f"({round(res['still'] * res['n'])}/{res['n']})")
     if res.get("faults"):
         rows.append("consistency failed by (videos): " + ", ".join(f"{k} {v}" for k, v in res["faults"].items()))
     rows.append(f"sampling {res['seconds']:.1f} s ({res['seconds_per_video']:.3f} s/video), "

@@ -638,6 +638,15 @@ def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
     return np.stack([p.frame0 for p in ps]), bench.prompts_for(ps, executor_prompt), [p.d_vlm for p in ps]
 
 
+# what each bench evaluation during training records: the three judges, their mean, and the share of still videos
+EVAL_KEYS = ("task", "agent", "consistency", "avg", "still")
+
+
+def eval_line(res: dict) -> str:
+    """One evaluation as a progress line."""
+    return " ".join(f"{k} {res[k]:.3f}" for k in EVAL_KEYS)
+
+
 def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> dict:
     """Bench scores of the Executor given T (or its --executor_prompt) -- or, with demonstrator=True, of the
     Demonstrator (adapters off) given the toy VLM's D. Same noise seed (0) every time, so curves compare like with
@@ -665,7 +674,9 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
     path = os.path.join(args.eval_cache, name)
     if os.path.isfile(path):        # the file name is the key's hash
-        return json.load(open(path))["result"]
+        cached = json.load(open(path))["result"]
+        if "still" in cached:       # written before bench.evaluate counted still videos: evaluate again, rewrite
+            return cached
     res = evaluate_executor(model, args, demonstrator)
     os.makedirs(args.eval_cache, exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp"
@@ -694,13 +705,11 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
 
     def log_eval(step):
         res = evaluate_executor(model, args) if step else at_0
-        rec = {"variant": variant, "step": step, **{k: res[k] for k in ("task", "agent", "consistency", "avg")},
-               "seconds": time.time() - start}
+        rec = {"variant": variant, "step": step, **{k: res[k] for k in EVAL_KEYS}, "seconds": time.time() - start}
         evals.append(rec)
         logf.write(json.dumps({"eval": True, **rec}) + "\n")
         logf.flush()
-        print(f"[{variant}] eval step {step:4d} | task {rec['task']:.3f} agent {rec['agent']:.3f} "
-              f"consistency {rec['consistency']:.3f} avg {rec['avg']:.3f}", flush=True)
+        print(f"[{variant}] eval step {step:4d} | {eval_line(rec)}", flush=True)
 
     log_eval(0)
     for step in range(1, args.steps + 1):
@@ -1294,7 +1303,7 @@ def rl_stage(args: Args) -> dict:
         say("note: no --eval_dataset, so this real model is evaluated on the toy bench's sprite frames", flush=True)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
-    keys = ("task", "agent", "consistency", "avg", "seconds_per_video")
+    keys = (*EVAL_KEYS, "seconds_per_video")
     given = EXECUTOR_PROMPTS[args.executor_prompt]
     base_row = f"Base ({given})"
     if state is not None:
@@ -1340,7 +1349,7 @@ def rl_stage(args: Args) -> dict:
         say(f"resumed {state_path} at step {first - 1}")
     elif rank0:
         base_T = fixed[base_row]
-        evals = [{"step": 0, **{k: base_T[k] for k in keys[:4]}}]
+        evals = [{"step": 0, **{k: base_T[k] for k in EVAL_KEYS}}]
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
         say(f"{len(pairs)} training pairs; {_world()} process(es); base given {given}: task "
@@ -1390,10 +1399,9 @@ def rl_stage(args: Args) -> dict:
             if rank0:
                 with weights_swapped(params, ema):
                     res = evaluate_executor(model, args)
-                evals.append({"step": step, **{k: res[k] for k in keys[:4]}})
+                evals.append({"step": step, **{k: res[k] for k in EVAL_KEYS}})
                 logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
-                say(f"  eval step {step}: task {res['task']:.3f} agent {res['agent']:.3f} consistency "
-                    f"{res['consistency']:.3f} avg {res['avg']:.3f}", flush=True)
+                say(f"  eval step {step}: {eval_line(res)}", flush=True)
             if dist.is_initialized():
                 dist.barrier()
         if rank0 and (step % args.save_every == 0 or step == args.steps):
@@ -1414,11 +1422,10 @@ def rl_stage(args: Args) -> dict:
             models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
         final = evaluate_executor(merged, args)     # the last point of the curve too: the same network, merged
         write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
-    evals = [e for e in evals if e["step"] != args.steps] + [{"step": args.steps, **{k: final[k] for k in keys[:4]}}]
+    evals = [e for e in evals if e["step"] != args.steps] + [{"step": args.steps, **{k: final[k] for k in EVAL_KEYS}}]
     logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
     logf.close()
-    say(f"  eval step {args.steps}: task {final['task']:.3f} agent {final['agent']:.3f} consistency "
-        f"{final['consistency']:.3f} avg {final['avg']:.3f}", flush=True)
+    say(f"  eval step {args.steps}: {eval_line(final)}", flush=True)
     name = f"{fig5_setting(args)} ({args.trainer}, {given}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
@@ -1426,9 +1433,10 @@ def rl_stage(args: Args) -> dict:
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
     if BENCH is not None:   # the Demonstrator's D is the bench file's, written by whatever VLM made it
         rows = {name.replace("toy VLM's D", "the bench file's D"): r for name, r in rows.items()}
-    table = ["| model | task | agent | consistency | avg | s/video |", "|---|---|---|---|---|---|"]
+    table = ["| model | task | agent | consistency | avg | still | s/video |", "|---|---|---|---|---|---|---|"]
     table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
-              f"{r['seconds_per_video']:.4f} |" for name, r in rows.items()]
+              f"{r.get('still', float('nan')):.3f} | {r['seconds_per_video']:.4f} |"   # nan: a state saved before
+              for name, r in rows.items()]                                             # the still count existed
     summary = {"args": dataclasses.asdict(args), "evals": evals, "minutes": (time.time() - start) / 60,
                "table": rows}
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:

@@ -2,6 +2,7 @@
 import json
 import os
 
+import numpy as np
 import pytest
 
 import bench
@@ -41,6 +42,18 @@ def test_consistency_faults_count_videos_per_kind():
                  c(False, "VLM"), {**c(True, ""), "consistency": reward.INVALID}]
     # a video counts once per kind however many sprites show it; a VLM's "no" gives no kind
     assert bench.consistency_faults(judgments) == {"reshaped": 2, "teleports": 1}
+
+
+def test_still_videos_counts_videos_where_nothing_moved():
+    rng = np.random.default_rng(0)
+    frame0 = rng.integers(0, 256, (4, 1, 8, 8, 3), dtype=np.uint8)
+    videos = np.repeat(frame0, 6, axis=1)            # four still videos
+    videos[1, 3, 2, 5, 0] = np.uint8((int(frame0[1, 0, 2, 5, 0]) + 17) % 256)  # one pixel, one frame, 17+ levels off
+    near = frame0[2, 0, 4, 4, 1]
+    videos[2, 5, 4, 4, 1] = near + 16 if near < 128 else near - 16             # 16 levels off: still counts as still
+    assert bench.still_videos(videos) == 3
+    assert bench.still_videos(videos, level=15) == 2
+    assert bench.still_videos(videos[:, :1]) == 4    # a single frame cannot move
 
 
 def test_mean_and_spread_over_seeds():

@@ -32,6 +32,7 @@ def test_rl_stage_smoke(tiny_ckpt, tmp_path, trainer, extra):
         assert "Demonstrator round" in r.stdout and "| trained Demonstrator phi" in r.stdout
     summary = json.load(open(tmp_path / "rl_summary.json"))
     assert [e["step"] for e in summary["evals"]] == [0, 2]
+    assert all(0 <= e["still"] <= 1 for e in summary["evals"]) and "| still |" in r.stdout
     for f in ("rl_curve.png", "rollouts_rl.gif", f"executor_{trainer}.pt", "rl.jsonl"):
         assert (tmp_path / f).exists(), f
     steps = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"eval"' not in line]
