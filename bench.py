@@ -138,13 +138,21 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
     return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")
 
 
-def still_videos(videos: np.ndarray, level: int = 16) -> int:
-    """How many videos show nothing moving: no pixel's colour differs from the first frame's by more than `level` of
-    255 in any frame (ours, not a paper column). A network that makes the same still video whatever the prompt -- the
-    collapse of App. A.3's Executor-as-its-own-Demonstrator -- is scored plausible by the consistency judge, and
-    Eqs. 9 and 11 read it as perfect agreement; this count is where the bench shows it. videos: uint8 (n, F, H, W, 3)."""
-    v = videos.astype(np.int16)
-    return int((np.abs(v[:, 1:] - v[:, :1]).max(axis=(1, 2, 3, 4), initial=0) <= level).sum())
+STILL_LEVEL = 16   # still_videos: a pixel has moved when a colour channel is more than this many levels off frame 0
+
+
+def moved_pixels(videos: np.ndarray, level: int) -> np.ndarray:
+    """bool (n, F-1, H, W): which pixels of frames 1.. differ from the first frame's by more than `level` of 255 in
+    some colour channel. videos: uint8 (n, F, H, W, 3)."""
+    return np.abs(videos[:, 1:].astype(np.int16) - videos[:, :1]).max(-1) > level
+
+
+def still_videos(videos: np.ndarray, level: int = STILL_LEVEL) -> int:
+    """How many videos show nothing moving: no pixel moved (moved_pixels) in any frame (ours, not a paper column).
+    A network that makes the same still video whatever the prompt -- the collapse of App. A.3's
+    Executor-as-its-own-Demonstrator -- is scored plausible by the consistency judge, and Eqs. 9 and 11 read it as
+    perfect agreement; this count is where the bench shows it."""
+    return int((~moved_pixels(videos, level).any(axis=(1, 2, 3))).sum())
 
 
 def kind_scores(pairs: list, judgments: list[dict]) -> dict:
@@ -376,8 +384,7 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
                                    return_trajectory=True)
             r_all += distill.distill_reward(model, traj, c_E, c_D).tolist()
             videos = model.decode(traj[0][-1], frame0)
-            moved = np.abs(videos[:, 1:].astype(int) - videos[:, :1]).max(-1) > 32
-            motion += moved.sum((1, 2, 3)).tolist()
+            motion += moved_pixels(videos, 32).sum((1, 2, 3)).tolist()
             task += [reward.judge_task(v, p.task.text).yes for v, p in zip(videos, ps)]
     groups = [slice(j * group, (j + 1) * group) for j in range(n)]
     rho_still = np.array([_spearman(r_all[g], -np.array(motion[g])) for g in groups])
@@ -490,7 +497,7 @@ def format_table(res: dict, title: str = "") -> str:
         rows.append("task by the toy VLM's D: "
                     + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
     if "still" in res:   # results saved before the count existed lack it
-        rows.append(f"still videos (no pixel moved > 16 levels from the first frame): {res['still']:.3f} "
+        rows.append(f"still videos (no pixel moved > {STILL_LEVEL} levels from the first frame): {res['still']:.3f} "
                     f"({round(res['still'] * res['n'])}/{res['n']})")
     if res.get("faults"):
         rows.append("consistency failed by (videos): " + ", ".join(f"{k} {v}" for k, v in res["faults"].items()))

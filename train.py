@@ -256,7 +256,7 @@ class Args:
     demonstrator: str = "base"
     """who gives v_theta'(x_t, t | c_D) in Eqs. 9 and 11: base (the fixed base, adapters off: the paper's main
     setting) | executor (the Executor's own current weights under c_D: App. A.3's shared weights, which the paper
-    found unstable; on the toy every seed collapsed to a still video by iteration 220, docs/results.md)"""
+    found unstable; on the toy every seed collapsed to a still video by iteration 220, given T sooner; docs/results.md)"""
     adv_agg: str = "gdpo"
     """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
     adv_clip: float = 5.0
@@ -675,8 +675,8 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     path = os.path.join(args.eval_cache, name)
     if os.path.isfile(path):        # the file name is the key's hash
         cached = json.load(open(path))["result"]
-        if "still" in cached:       # written before bench.evaluate counted still videos: evaluate again, rewrite
-            return cached
+        if set(EVAL_KEYS) <= cached.keys():   # else written before bench.evaluate returned all that training
+            return cached                     # records (the still count): evaluate again, rewrite
     res = evaluate_executor(model, args, demonstrator)
     os.makedirs(args.eval_cache, exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp"
