@@ -1482,7 +1482,7 @@ def main(argv=None):
         # to the collectives before it and their tensors; freeing a tensor that Python has let go of takes the GIL.
         # If Python is finalizing by then, the thread is ended inside that C++ destructor and the process aborts
         # ("terminate called without an active exception": rank 1, 3 runs in 109 of the two-process test's command
-        # on 2 cores, docs/timing.md). Every file is closed by now, so leave without finalizing.
+        # on 2 cores, docs/timing.md). Every file is closed or flushed by now, so leave without finalizing.
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)
