@@ -924,8 +924,13 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end
 
 # ---- processes: the same loop under torchrun (gloo on CPU, NCCL on GPUs) ------------------------------------------
 
+def _under_torchrun() -> bool:
+    """Launched as one of several processes (torchrun sets WORLD_SIZE), whether or not the group is up yet."""
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1
+
+
 def _dist_init() -> None:
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+    if _under_torchrun() and not dist.is_initialized():
         if torch.cuda.is_available():
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
@@ -1477,7 +1482,7 @@ def main(argv=None):
     except TrainingFault as e:                     # a non-finite quantity: one line, exit 1
         print(f"error: {e}", file=sys.stderr)
         sys.exit(1)
-    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if _under_torchrun():
         # Under torchrun a gloo worker thread can still hold the last reference to the final barrier, and through it
         # to the collectives before it and their tensors; freeing a tensor that Python has let go of takes the GIL.
         # If Python is finalizing by then, the thread is ended inside that C++ destructor and the process aborts
