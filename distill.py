@@ -225,7 +225,7 @@ def dmd_generator(model, student_traj, c_E: dict, generator=None) -> torch.Tenso
 
 def _denoise(model, x_t, t, c):
     """mu(x_t, t) = x_t + (1 - t) v(x_t, t): the clean-data estimate in our convention (t = 1 is data)."""
-    return x_t + (1 - t).reshape(-1, *([1] * (x_t.dim() - 1))) * model(x_t, t, c)
+    return x_t + flow._bcast(1 - t, x_t) * model(x_t, t, c)
 
 
 def dmd_generator_loss(model, fake, x: torch.Tensor, c_E: dict, c_D: dict, generator=None) -> torch.Tensor:
@@ -250,7 +250,7 @@ def dmd_generator_loss(model, fake, x: torch.Tensor, c_E: dict, c_D: dict, gener
         with models.adapters_disabled(model):
             mu_real = _denoise(model, x_t, t, c_D)
         mu_fake = _denoise(fake, x_t, t, c_E)
-        norm = (x.detach() - mu_real).abs().flatten(1).mean(1).clamp(min=1e-3).reshape(-1, *([1] * (x.dim() - 1)))
+        norm = flow._bcast((x.detach() - mu_real).abs().flatten(1).mean(1).clamp(min=1e-3), x)
         g = (mu_fake - mu_real) / norm
     return 0.5 * (x - (x - g).detach()).pow(2).mean()
 
