@@ -359,6 +359,22 @@ def _spearman(a, b) -> float:
     return float("nan") if ra.std() == 0 or rb.std() == 0 else float(np.corrcoef(ra, rb)[0, 1])
 
 
+def _within(x, y, groups) -> tuple[float, float]:
+    """Mean over groups of Spearman(x, y) within each group (on the rows where both are finite; a group with no rank
+    order on either side is left out), and the share of those groups where it is above 0. (nan, nan) if none."""
+    rho = []
+    for g in groups:
+        a, b = np.asarray(x[g], dtype=float), np.asarray(y[g], dtype=float)
+        ok = np.isfinite(a) & np.isfinite(b)
+        rho.append(_spearman(a[ok], b[ok]) if ok.sum() > 1 else float("nan"))
+    rho = np.array(rho)[~np.isnan(rho)]
+    return (float(rho.mean()), float((rho > 0).mean())) if len(rho) else (float("nan"), float("nan"))
+
+
+# train.py's defaults (Args: lambda_task, lambda_cons, lambda_distill 1, adv_agg gdpo, adv_clip 5; a test checks)
+RANK_WEIGHTS = {"task": 1.0, "consistency": 1.0, "distill": 1.0}
+
+
 def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, seed: int = 1,
                   error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, chunk: int = 25) -> dict:
     """What does r_distill's group-relative advantage reward? (a diagnostic of ours, not a paper experiment)
@@ -366,14 +382,20 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     For each of the first n bench pairs, `group` ODE rollouts of `model` given `condition` (the Executor's prompt
     c_E), from noise seed `seed` as the rl stage draws a group; for each rollout r_distill (Eq. 9,
     distill.distill_reward) against the Demonstrator given the toy VLM's D, its motion (pixel-frames whose colour
-    differs from frame 0 by more than 32 levels in some channel) and the task judgment. Rewards only rank rollouts
-    within a group (Eq. 10's advantages), so every statistic is taken within each group, then averaged over groups:
+    differs from frame 0 by more than 32 levels in some channel), the task judgment and the judges' graded scores
+    r_task and r_cons (train.py's rewards, --task_reward end_state). Rewards only rank rollouts within a group (Eq.
+    10's advantages), so every statistic is taken within each group, then averaged over groups:
     Spearman(r_distill, -motion); Spearman(r_distill, task yes) over the groups with both outcomes and every
-    judgment valid; and in those, whether the solving rollouts' mean r_distill lies above the failing ones'.
-    Returns the statistics and the per-rollout "r_distill", "motion", "task" lists (pair-major)."""
+    judgment valid; and in those, whether the solving rollouts' mean r_distill lies above the failing ones'. The
+    same two Spearmans of r_task and r_cons, and of the advantages rl.advantages makes at train.py's defaults
+    (RANK_WEIGHTS, gdpo, clip 5) from the judges alone ("A_judges", RL from the judges) and from the judges and
+    r_distill ("A_wmsd", the rl stage's L_RL with or without the anchor). Returns the statistics and the per-rollout
+    "r_distill", "motion", "task", "r_task", "r_cons", "A_judges" and "A_wmsd" lists (pair-major)."""
+    import rl   # here, not at the top: only this diagnostic makes advantages
     pairs = world.bench_pairs(error_rate)[:n]
     x_0 = models.seeded_noise(model, n * group, seed)
-    r_all, motion, task = [], [], []
+    r_all, motion, task, r_task, r_cons = [], [], [], [], []
+    score = lambda j: float("nan") if j.score is None else j.score
     with torch.no_grad():
         for i in range(0, n, chunk):
             ps = [p for p in pairs[i:i + chunk] for _ in range(group)]
@@ -385,20 +407,31 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
             r_all += distill.distill_reward(model, traj, c_E, c_D).tolist()
             videos = model.decode(traj[0][-1], frame0)
             motion += moved_pixels(videos, 32).sum((1, 2, 3)).tolist()
-            task += [reward.judge_task(v, p.task.text).yes for v, p in zip(videos, ps)]
+            for v, p in zip(videos, ps):
+                j = reward.judge_task(v, p.task.text)
+                task.append(j.yes)
+                r_task.append(score(j))
+                r_cons.append(score(reward.judge_consistency(v)))
     groups = [slice(j * group, (j + 1) * group) for j in range(n)]
-    rho_still = np.array([_spearman(r_all[g], -np.array(motion[g])) for g in groups])
+    ids = torch.arange(n).repeat_interleave(group)
+    rewards = {"task": torch.tensor(r_task), "consistency": torch.tensor(r_cons), "distill": torch.tensor(r_all)}
+    judges = {k: w for k, w in RANK_WEIGHTS.items() if k != "distill"}
+    ranked = {"r_distill": r_all, "r_task": r_task, "r_cons": r_cons,
+              "A_judges": rl.advantages(rewards, judges, ids, "gdpo", 5.0).tolist(),
+              "A_wmsd": rl.advantages(rewards, RANK_WEIGHTS, ids, "gdpo", 5.0).tolist()}
+    still = -np.array(motion)
     mixed = [g for g in groups if None not in task[g] and 0 < sum(task[g]) < group]
-    rho_task = [_spearman(r_all[g], task[g]) for g in mixed]
+    res = {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps, "mixed_groups": len(mixed)}
+    for name, x in ranked.items():
+        rho, pos = _within(x, still, groups)
+        rho_task = _within(x, task, mixed)[0]
+        if name == "r_distill":
+            res.update(rho_still=rho, still_positive=pos, rho_task=rho_task)
+        res[f"rho_still_of_{name}"], res[f"still_positive_of_{name}"], res[f"rho_task_of_{name}"] = rho, pos, rho_task
     mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
-    ok = ~np.isnan(rho_still)
-    return {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps,
-            "rho_still": float(rho_still[ok].mean()) if ok.any() else float("nan"),   # nan: no group varies
-            "still_positive": float((rho_still[ok] > 0).mean()) if ok.any() else float("nan"),
-            "rho_task": float(np.mean(rho_task)) if mixed else float("nan"), "mixed_groups": len(mixed),
-            "solving_higher": float(np.mean(higher)) if mixed else float("nan"),
-            "r_distill": r_all, "motion": motion, "task": task}
+    return res | {"solving_higher": float(np.mean(higher)) if mixed else float("nan"),
+                  "motion": motion, "task": task} | ranked
 
 
 def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ERROR_RATE) -> dict:
@@ -840,6 +873,12 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
         print(f"within-group Spearman(r_distill, task yes): {res['rho_task']:.3f} over the {res['mixed_groups']} "
               f"groups with both outcomes; the solving rollouts' mean r_distill is the higher in "
               f"{res['solving_higher']:.0%} of them")
+        print("the same two within-group Spearmans, (-motion) and (task yes), of the judges' scores and of the "
+              "advantages (gdpo, train.py's default weights):")
+        for name, what in (("r_task", "r_task"), ("r_cons", "r_cons"), ("A_judges", "A, the judges alone"),
+                           ("A_wmsd", "A, the judges + r_distill")):
+            print(f"  {what}: {res['rho_still_of_' + name]:.3f} (above 0 in {res['still_positive_of_' + name]:.0%} "
+                  f"of groups), {res['rho_task_of_' + name]:.3f}")
         if a.json:
             print(json.dumps(res))
         return

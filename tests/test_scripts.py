@@ -258,6 +258,25 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     moved = (np.abs(videos[:, 1:].astype(int) - videos[:, :1]).max(-1) > 32).sum((1, 2, 3))
     assert res["motion"][8:] == moved.tolist()
     assert res["task"][8:] == [reward.judge_task(v, p.task.text).yes for v in videos]
+    assert np.allclose(res["r_task"][8:], [reward.judge_task(v, p.task.text).score for v in videos], equal_nan=True)
+    assert np.allclose(res["r_cons"][8:], [reward.judge_consistency(v).score for v in videos], equal_nan=True)
+    import rl
+    import train
+    defaults = train.Args()            # the advantages are those of train.py's default rewards and aggregation
+    assert bench.RANK_WEIGHTS == {"task": defaults.lambda_task, "consistency": defaults.lambda_cons,
+                                  "distill": defaults.lambda_distill}
+    assert (defaults.adv_agg, defaults.adv_clip) == ("gdpo", 5.0)
+    rewards = {"task": torch.tensor(res["r_task"]), "consistency": torch.tensor(res["r_cons"]),
+               "distill": torch.tensor(res["r_distill"])}
+    ids = torch.arange(3).repeat_interleave(4)
+    A = rl.advantages(rewards, bench.RANK_WEIGHTS, ids, "gdpo", 5.0).numpy()
+    assert np.allclose(res["A_wmsd"], A, atol=1e-6) and not np.allclose(A, 0)
+    rewards.pop("distill")
+    assert np.allclose(res["A_judges"], rl.advantages(rewards, bench.RANK_WEIGHTS, ids, "gdpo", 5.0), atol=1e-6)
+    still = -np.array(res["motion"])
+    rho = [bench._spearman(A[g:g + 4], still[g:g + 4]) for g in (0, 4, 8)]
+    rho = [x for x in rho if not np.isnan(x)]
+    assert np.allclose(res["rho_still_of_A_wmsd"], np.mean(rho) if rho else np.nan, equal_nan=True)
     rho = [bench._spearman(res["r_distill"][g:g + 4], -np.array(res["motion"][g:g + 4])) for g in (0, 4, 8)]
     rho = [x for x in rho if not np.isnan(x)]       # a group whose rollouts all move alike has no rank order
     assert np.allclose([res["rho_still"], res["still_positive"]],
@@ -265,7 +284,8 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     r = run("bench.py", "--checkpoint", tiny_ckpt, "--rank_rdistill", "--n", "2", "--group", "3", "--steps", "2",
             "--json")
     assert r.returncode == 0, r.stderr
-    assert "Spearman(r_distill, -motion)" in r.stdout and json.loads(r.stdout.splitlines()[-1])["group"] == 3
+    assert "Spearman(r_distill, -motion)" in r.stdout and "A, the judges + r_distill" in r.stdout
+    assert json.loads(r.stdout.splitlines()[-1])["group"] == 3
     r = run("bench.py", "--rank_rdistill", "--group", "1")
     assert r.returncode == 2 and "--group must be >= 2" in r.stderr
     r = run("bench.py", "--guidance", "-1")
