@@ -55,6 +55,7 @@ import distill
 import flow
 import models
 import reward
+import rl
 import world
 
 DEFAULT_ERROR_RATE = 0.3  # the toy VLM's share of wrong descriptions; chosen so the "+VLM" row lands in 0.45-0.70
@@ -371,6 +372,12 @@ def _within(x, y, groups) -> tuple[float, float]:
     return (float(rho.mean()), float((rho > 0).mean())) if len(rho) else (float("nan"), float("nan"))
 
 
+def _push(A: torch.Tensor, y, ids: torch.Tensor) -> float:
+    """Mean over rollouts of A times y standardised within its group (rl.group_advantages: 0 in a group where y is
+    constant, and where y is NaN): a correlation when A has unit spread over the batch, as gdpo's has."""
+    return float((A * rl.group_advantages(torch.tensor(y, dtype=torch.float32), ids)).mean())
+
+
 # train.py's defaults (Args: lambda_task, lambda_cons, lambda_distill 1, adv_agg gdpo, adv_clip 5; a test checks)
 RANK_WEIGHTS = {"task": 1.0, "consistency": 1.0, "distill": 1.0}
 
@@ -387,11 +394,14 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     10's advantages), so every statistic is taken within each group, then averaged over groups:
     Spearman(r_distill, -motion); Spearman(r_distill, task yes) over the groups with both outcomes and every
     judgment valid; and in those, whether the solving rollouts' mean r_distill lies above the failing ones'. The
-    same two Spearmans of r_task and r_cons, and of the advantages rl.advantages makes at train.py's defaults
-    (RANK_WEIGHTS, gdpo, clip 5) from the judges alone ("A_judges", RL from the judges) and from the judges and
-    r_distill ("A_wmsd", the rl stage's L_RL with or without the anchor). Returns the statistics and the per-rollout
-    "r_distill", "motion", "task", "r_task", "r_cons", "A_judges" and "A_wmsd" lists (pair-major)."""
-    import rl   # here, not at the top: only this diagnostic makes advantages
+    same two Spearmans of r_task and r_cons. Spearman is blind to size, and a reward of tiny weight still breaks
+    the others' ties, so for the advantages rl.advantages makes at train.py's defaults (RANK_WEIGHTS, gdpo, clip 5),
+    from the judges alone ("A_judges", RL from the judges) and from the judges and r_distill ("A_wmsd", the rl
+    stage's L_RL with or without the anchor), the statistic is their mean product with the group-standardised
+    -motion and task yes (rl.group_advantages; 0 in a group where it is constant): a correlation, as gdpo's A has
+    unit spread over the batch, and the share of the update that favours still (or solving) rollouts. Returns the
+    statistics and the per-rollout "r_distill", "motion", "task", "r_task", "r_cons", "A_judges" and "A_wmsd" lists
+    (pair-major)."""
     pairs = world.bench_pairs(error_rate)[:n]
     x_0 = models.seeded_noise(model, n * group, seed)
     r_all, motion, task, r_task, r_cons = [], [], [], [], []
@@ -416,9 +426,9 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     ids = torch.arange(n).repeat_interleave(group)
     rewards = {"task": torch.tensor(r_task), "consistency": torch.tensor(r_cons), "distill": torch.tensor(r_all)}
     judges = {k: w for k, w in RANK_WEIGHTS.items() if k != "distill"}
-    ranked = {"r_distill": r_all, "r_task": r_task, "r_cons": r_cons,
-              "A_judges": rl.advantages(rewards, judges, ids, "gdpo", 5.0).tolist(),
-              "A_wmsd": rl.advantages(rewards, RANK_WEIGHTS, ids, "gdpo", 5.0).tolist()}
+    ranked = {"r_distill": r_all, "r_task": r_task, "r_cons": r_cons}
+    A = {"A_judges": rl.advantages(rewards, judges, ids, "gdpo", 5.0),
+         "A_wmsd": rl.advantages(rewards, RANK_WEIGHTS, ids, "gdpo", 5.0)}
     still = -np.array(motion)
     mixed = [g for g in groups if None not in task[g] and 0 < sum(task[g]) < group]
     res = {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps, "mixed_groups": len(mixed)}
@@ -428,10 +438,13 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
         if name == "r_distill":
             res.update(rho_still=rho, still_positive=pos, rho_task=rho_task)
         res[f"rho_still_of_{name}"], res[f"still_positive_of_{name}"], res[f"rho_task_of_{name}"] = rho, pos, rho_task
+    for name, a in A.items():
+        res[f"still_push_of_{name}"] = _push(a, still, ids)
+        res[f"task_push_of_{name}"] = _push(a, [np.nan if y is None else float(y) for y in task], ids)
     mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
     return res | {"solving_higher": float(np.mean(higher)) if mixed else float("nan"),
-                  "motion": motion, "task": task} | ranked
+                  "motion": motion, "task": task} | ranked | {k: a.tolist() for k, a in A.items()}
 
 
 def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ERROR_RATE) -> dict:
@@ -873,12 +886,13 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
         print(f"within-group Spearman(r_distill, task yes): {res['rho_task']:.3f} over the {res['mixed_groups']} "
               f"groups with both outcomes; the solving rollouts' mean r_distill is the higher in "
               f"{res['solving_higher']:.0%} of them")
-        print("the same two within-group Spearmans, (-motion) and (task yes), of the judges' scores and of the "
-              "advantages (gdpo, train.py's default weights):")
-        for name, what in (("r_task", "r_task"), ("r_cons", "r_cons"), ("A_judges", "A, the judges alone"),
-                           ("A_wmsd", "A, the judges + r_distill")):
-            print(f"  {what}: {res['rho_still_of_' + name]:.3f} (above 0 in {res['still_positive_of_' + name]:.0%} "
-                  f"of groups), {res['rho_task_of_' + name]:.3f}")
+        for name in ("r_task", "r_cons"):
+            print(f"the same two of {name}: {res['rho_still_of_' + name]:.3f} (above 0 in "
+                  f"{res['still_positive_of_' + name]:.0%} of groups), {res['rho_task_of_' + name]:.3f}")
+        print("the advantages (gdpo, train.py's default weights), their correlation with the group-standardised "
+              "-motion and task yes:")
+        for name, what in (("A_judges", "the judges alone"), ("A_wmsd", "the judges + r_distill")):
+            print(f"  {what}: {res['still_push_of_' + name]:.3f}, {res['task_push_of_' + name]:.3f}")
         if a.json:
             print(json.dumps(res))
         return

@@ -273,10 +273,9 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     assert np.allclose(res["A_wmsd"], A, atol=1e-6) and not np.allclose(A, 0)
     rewards.pop("distill")
     assert np.allclose(res["A_judges"], rl.advantages(rewards, bench.RANK_WEIGHTS, ids, "gdpo", 5.0), atol=1e-6)
-    still = -np.array(res["motion"])
-    rho = [bench._spearman(A[g:g + 4], still[g:g + 4]) for g in (0, 4, 8)]
-    rho = [x for x in rho if not np.isnan(x)]
-    assert np.allclose(res["rho_still_of_A_wmsd"], np.mean(rho) if rho else np.nan, equal_nan=True)
+    assert res["still_push_of_A_wmsd"] == bench._push(torch.tensor(A), -np.array(res["motion"]), ids)
+    # by hand: y standardised within groups is (1, -1) and (0, 0), a group where y is constant
+    assert bench._push(torch.tensor([1., -1, 1, -1]), [2, 0, 5, 5], torch.tensor([0, 0, 1, 1])) == pytest.approx(0.5)
     rho = [bench._spearman(res["r_distill"][g:g + 4], -np.array(res["motion"][g:g + 4])) for g in (0, 4, 8)]
     rho = [x for x in rho if not np.isnan(x)]       # a group whose rollouts all move alike has no rank order
     assert np.allclose([res["rho_still"], res["still_positive"]],
@@ -284,7 +283,7 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     r = run("bench.py", "--checkpoint", tiny_ckpt, "--rank_rdistill", "--n", "2", "--group", "3", "--steps", "2",
             "--json")
     assert r.returncode == 0, r.stderr
-    assert "Spearman(r_distill, -motion)" in r.stdout and "A, the judges + r_distill" in r.stdout
+    assert "Spearman(r_distill, -motion)" in r.stdout and "the judges + r_distill: " in r.stdout
     assert json.loads(r.stdout.splitlines()[-1])["group"] == 3
     r = run("bench.py", "--rank_rdistill", "--group", "1")
     assert r.returncode == 2 and "--group must be >= 2" in r.stderr
