@@ -28,7 +28,8 @@ which a bystander moves the goal to the agent.
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
-  python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill favours
+  python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill and the
+                                                   # advantages favour: still videos, or solving
   python bench.py --gallery g.png --executor runs/executor_awm.pt   # the first 6 pairs: simulator, Demonstrator,
                                                    # base and Executor, frame by frame, with the judges' verdicts
 
