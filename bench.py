@@ -400,7 +400,7 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     from the judges alone ("A_judges", RL from the judges) and from the judges and r_distill ("A_wmsd", the rl
     stage's L_RL with or without the anchor), the statistic is their mean product with the group-standardised
     -motion and task yes (rl.group_advantages; 0 in a group where it is constant): a correlation, as gdpo's A has
-    unit spread over the batch, and the share of the update that favours still (or solving) rollouts. Returns the
+    unit spread over the batch, of how far the advantage points towards still (or solving) rollouts. Returns the
     statistics and the per-rollout "r_distill", "motion", "task", "r_task", "r_cons", "A_judges" and "A_wmsd" lists
     (pair-major)."""
     pairs = world.bench_pairs(error_rate)[:n]
@@ -427,25 +427,24 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
     ids = torch.arange(n).repeat_interleave(group)
     rewards = {"task": torch.tensor(r_task), "consistency": torch.tensor(r_cons), "distill": torch.tensor(r_all)}
     judges = {k: w for k, w in RANK_WEIGHTS.items() if k != "distill"}
-    ranked = {"r_distill": r_all, "r_task": r_task, "r_cons": r_cons}
     A = {"A_judges": rl.advantages(rewards, judges, ids, "gdpo", 5.0),
          "A_wmsd": rl.advantages(rewards, RANK_WEIGHTS, ids, "gdpo", 5.0)}
     still = -np.array(motion)
     mixed = [g for g in groups if None not in task[g] and 0 < sum(task[g]) < group]
-    res = {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps, "mixed_groups": len(mixed)}
-    for name, x in ranked.items():
-        rho, pos = _within(x, still, groups)
-        rho_task = _within(x, task, mixed)[0]
-        if name == "r_distill":
-            res.update(rho_still=rho, still_positive=pos, rho_task=rho_task)
-        res[f"rho_still_of_{name}"], res[f"still_positive_of_{name}"], res[f"rho_task_of_{name}"] = rho, pos, rho_task
+    rho_still, still_positive = _within(r_all, still, groups)
+    res = {"condition": condition, "n": n, "group": group, "seed": seed, "steps": steps, "mixed_groups": len(mixed),
+           "rho_still": rho_still, "still_positive": still_positive, "rho_task": _within(r_all, task, mixed)[0]}
+    for name, x in (("r_task", r_task), ("r_cons", r_cons)):
+        res[f"rho_still_of_{name}"], res[f"still_positive_of_{name}"] = _within(x, still, groups)
+        res[f"rho_task_of_{name}"] = _within(x, task, mixed)[0]
     for name, a in A.items():
         res[f"still_push_of_{name}"] = _push(a, still, ids)
         res[f"task_push_of_{name}"] = _push(a, [np.nan if y is None else float(y) for y in task], ids)
     mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
     return res | {"solving_higher": float(np.mean(higher)) if mixed else float("nan"),
-                  "motion": motion, "task": task} | ranked | {k: a.tolist() for k, a in A.items()}
+                  "r_distill": r_all, "motion": motion, "task": task, "r_task": r_task, "r_cons": r_cons} | {
+                      k: a.tolist() for k, a in A.items()}
 
 
 def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ERROR_RATE) -> dict:
@@ -888,8 +887,9 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
               f"groups with both outcomes; the solving rollouts' mean r_distill is the higher in "
               f"{res['solving_higher']:.0%} of them")
         for name in ("r_task", "r_cons"):
-            print(f"the same two of {name}: {res['rho_still_of_' + name]:.3f} (above 0 in "
-                  f"{res['still_positive_of_' + name]:.0%} of groups), {res['rho_task_of_' + name]:.3f}")
+            print(f"Spearman({name}, -motion): {res['rho_still_of_' + name]:.3f} (above 0 in "
+                  f"{res['still_positive_of_' + name]:.0%} of groups); Spearman({name}, task yes): "
+                  f"{res['rho_task_of_' + name]:.3f}")
         print("the advantages (gdpo, train.py's default weights), their correlation with the group-standardised "
               "-motion and task yes:")
         for name, what in (("A_judges", "the judges alone"), ("A_wmsd", "the judges + r_distill")):
