@@ -419,10 +419,11 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
             videos = model.decode(traj[0][-1], frame0)
             motion += moved_pixels(videos, 32).sum((1, 2, 3)).tolist()
             for v, p in zip(videos, ps):
-                j = reward.judge_task(v, p.task.text)
+                r = reward.read_video(v)           # read once for both judges (None: each judges it invalid)
+                j = reward.judge_task(r, p.task.text)
                 task.append(j.yes)
                 r_task.append(score(j))
-                r_cons.append(score(reward.judge_consistency(v)))
+                r_cons.append(score(reward.judge_consistency(r)))
     groups = [slice(j * group, (j + 1) * group) for j in range(n)]
     ids = torch.arange(n).repeat_interleave(group)
     rewards = {"task": torch.tensor(r_task), "consistency": torch.tensor(r_cons), "distill": torch.tensor(r_all)}
@@ -442,9 +443,9 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
         res[f"task_push_of_{name}"] = _push(a, [np.nan if y is None else float(y) for y in task], ids)
     mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
-    return res | {"solving_higher": float(np.mean(higher)) if mixed else float("nan"),
-                  "r_distill": r_all, "motion": motion, "task": task, "r_task": r_task, "r_cons": r_cons} | {
-                      k: a.tolist() for k, a in A.items()}
+    per_rollout = {"r_distill": r_all, "motion": motion, "task": task, "r_task": r_task, "r_cons": r_cons}
+    return res | {"solving_higher": float(np.mean(higher)) if mixed else float("nan")} | per_rollout | {
+        k: a.tolist() for k, a in A.items()}
 
 
 def pointing(model, condition: str, n: int = 200, error_rate: float = DEFAULT_ERROR_RATE) -> dict:
