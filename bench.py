@@ -141,12 +141,18 @@ def vlm_error_scores(pairs: list, judgments: list[dict]) -> dict:
 
 
 STILL_LEVEL = 16   # still_videos: a pixel has moved when a colour channel is more than this many levels off frame 0
+MOTION_LEVEL = 32  # rank_rdistill's and the rl stage's motion: pixel-frames more than this many levels off frame 0
 
 
 def moved_pixels(videos: np.ndarray, level: int) -> np.ndarray:
-    """bool (n, F-1, H, W): which pixels of frames 1.. differ from the first frame's by more than `level` of 255 in
-    some colour channel. videos: uint8 (n, F, H, W, 3)."""
-    return np.abs(videos[:, 1:].astype(np.int16) - videos[:, :1]).max(-1) > level
+    """(n,) int: how many pixel-frames of each video (frames 1..) differ from its first frame by more than `level`
+    of 255 in some colour channel. videos: uint8 (n, F, H, W, 3); one frame at a time, so that a real-size video
+    never needs a whole int16 copy."""
+    first = videos[:, :1].astype(np.int16)
+    counts = np.zeros(len(videos), dtype=np.int64)
+    for f in range(1, videos.shape[1]):
+        counts += (np.abs(videos[:, f:f + 1].astype(np.int16) - first).max(-1) > level).sum((1, 2, 3))
+    return counts
 
 
 def still_videos(videos: np.ndarray, level: int = STILL_LEVEL) -> int:
@@ -154,7 +160,7 @@ def still_videos(videos: np.ndarray, level: int = STILL_LEVEL) -> int:
     A network that makes the same still video whatever the prompt -- the collapse of App. A.3's
     Executor-as-its-own-Demonstrator -- is scored plausible by the consistency judge, and Eqs. 9 and 11 read it as
     perfect agreement; this count is where the bench shows it."""
-    return int((~moved_pixels(videos, level).any(axis=(1, 2, 3))).sum())
+    return int((moved_pixels(videos, level) == 0).sum())
 
 
 def kind_scores(pairs: list, judgments: list[dict]) -> dict:
@@ -373,7 +379,7 @@ def _within(x, y, groups) -> tuple[float, float]:
     return (float(rho.mean()), float((rho > 0).mean())) if len(rho) else (float("nan"), float("nan"))
 
 
-def _push(A: torch.Tensor, y, ids: torch.Tensor) -> float:
+def pull(A: torch.Tensor, y, ids: torch.Tensor) -> float:
     """Mean over rollouts of A times y standardised within its group (rl.group_advantages: 0 in a group where y is
     constant, and where y is NaN): a correlation when A has unit spread over the batch, as gdpo's has."""
     return float((A * rl.group_advantages(torch.tensor(y, dtype=torch.float32), ids)).mean())
@@ -417,7 +423,7 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
                                    return_trajectory=True)
             r_all += distill.distill_reward(model, traj, c_E, c_D).tolist()
             videos = model.decode(traj[0][-1], frame0)
-            motion += moved_pixels(videos, 32).sum((1, 2, 3)).tolist()
+            motion += moved_pixels(videos, MOTION_LEVEL).tolist()
             for v, p in zip(videos, ps):
                 r = reward.read_video(v)           # read once for both judges (None: each judges it invalid)
                 j = reward.judge_task(r, p.task.text)
@@ -439,8 +445,8 @@ def rank_rdistill(model, condition: str = "task", n: int = 100, group: int = 8, 
         res[f"rho_still_of_{name}"], res[f"still_positive_of_{name}"] = _within(x, still, groups)
         res[f"rho_task_of_{name}"] = _within(x, task, mixed)[0]
     for name, a in A.items():
-        res[f"still_push_of_{name}"] = _push(a, still, ids)
-        res[f"task_push_of_{name}"] = _push(a, [np.nan if y is None else float(y) for y in task], ids)
+        res[f"still_push_of_{name}"] = pull(a, still, ids)
+        res[f"task_push_of_{name}"] = pull(a, [np.nan if y is None else float(y) for y in task], ids)
     mean_r = lambda g, solved: np.mean([r for r, y in zip(r_all[g], task[g]) if y == solved])
     higher = [mean_r(g, True) > mean_r(g, False) for g in mixed]
     per_rollout = {"r_distill": r_all, "motion": motion, "task": task, "r_task": r_task, "r_cons": r_cons}

@@ -1106,6 +1106,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
     local = judge_rollouts(videos, tasks, args.task_reward)
+    local["motion"] = torch.tensor(bench.moved_pixels(videos, bench.MOTION_LEVEL), dtype=torch.float32)
+    local["still"] = torch.tensor(bench.moved_pixels(videos, bench.STILL_LEVEL) == 0, dtype=torch.float32)
     for p in parts:   # the Demonstrator along the Executor's trajectories: Eq. 9 uses them all, Eq. 11 one each
         p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, teacher) if args.lambda_distill > 0 else None
     local["distill"] = local["r_distill"] = torch.zeros(n)
@@ -1146,6 +1148,10 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
             "r_distill": float(rewards["r_distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
             "adv_abs": float(A_all.abs().mean()),
+            # the collapse to still videos (docs/given-t.md), step by step: how many rollouts show nothing moving
+            # (bench.still_videos), and how far A points towards less motion (bench.pull, as bench.py --rank_rdistill)
+            "still": int(rewards["still"].sum()),
+            "still_push": bench.pull(A_all, (-rewards["motion"]).tolist(), groups) if A_all.dim() == 1 else None,
             "A": [round(a, 6) for a in A_all.tolist()] if A_all.dim() == 1 else [[round(a, 6) for a in row]
                                                                                  for row in A_all.tolist()],
             "rollouts_per_s": N / max(t1 - t0, 1e-9),
@@ -1394,7 +1400,8 @@ def rl_stage(args: Args) -> dict:
             logf.write(json.dumps(rec) + "\n")
             logf.flush()
         what = ("Demonstrator round | " if rec.get("demo_round") else "") + " ".join(
-            f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec)
+            f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec) + (
+            f" still {rec['still']}" if "still" in rec else "")
         say(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
             f"{rec['step_seconds']:.1f} s" + (f" ({rec['sample_s']:.1f} sampling, {rec['reward_s']:.1f} rewards, "
                                                f"{rec['update_s']:.1f} update)" if "reward_s" in rec else "")

@@ -54,6 +54,8 @@ def test_still_videos_counts_videos_where_nothing_moved():
     assert bench.still_videos(videos) == 3
     assert bench.still_videos(videos, level=15) == 2
     assert bench.still_videos(videos[:, :1]) == 4    # a single frame cannot move
+    assert bench.moved_pixels(videos, 16).tolist() == [0, 1, 0, 0]   # pixel-frames moved, video by video
+    assert bench.moved_pixels(videos, 15).tolist() == [0, 1, 1, 0]
 
 
 def test_mean_and_spread_over_seeds():

@@ -273,9 +273,9 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     assert np.allclose(res["A_wmsd"], A, atol=1e-6) and not np.allclose(A, 0)
     rewards.pop("distill")
     assert np.allclose(res["A_judges"], rl.advantages(rewards, bench.RANK_WEIGHTS, ids, "gdpo", 5.0), atol=1e-6)
-    assert res["still_push_of_A_wmsd"] == bench._push(torch.tensor(A), -np.array(res["motion"]), ids)
+    assert res["still_push_of_A_wmsd"] == bench.pull(torch.tensor(A), -np.array(res["motion"]), ids)
     # by hand: y standardised within groups is (1, -1) and (0, 0), a group where y is constant
-    assert bench._push(torch.tensor([1., -1, 1, -1]), [2, 0, 5, 5], torch.tensor([0, 0, 1, 1])) == pytest.approx(0.5)
+    assert bench.pull(torch.tensor([1., -1, 1, -1]), [2, 0, 5, 5], torch.tensor([0, 0, 1, 1])) == pytest.approx(0.5)
     rho = [bench._spearman(res["r_distill"][g:g + 4], -np.array(res["motion"][g:g + 4])) for g in (0, 4, 8)]
     rho = [x for x in rho if not np.isnan(x)]       # a group whose rollouts all move alike has no rank order
     assert np.allclose([res["rho_still"], res["still_positive"]],

@@ -7,9 +7,11 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
+import bench
 import train
 from conftest import ROOT, exit_2, run
 
@@ -137,6 +139,29 @@ def test_a_failing_judge_is_counted_and_skipped(tiny_ckpt, tmp_path, monkeypatch
     recs = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line]
     assert sum(r["judge_errors"] for r in recs) > 0
     assert all(r["invalid"] >= r["judge_errors"] for r in recs)
+
+
+def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckpt, tmp_path, monkeypatch):
+    """The collapse monitor in each rl step's record: how many rollouts show nothing moving (bench.still_videos) and
+    the advantages' pull towards less motion (bench.pull of A on -motion, within the groups)."""
+    real, seen = train._sample_parts, []
+
+    def half_still(*a):
+        v = real(*a)
+        v[::2] = v[::2, :1]              # every other rollout: its first frame held; the others slide right
+        v[1::2] = np.stack([np.roll(v[1::2, 0], 2 * f, axis=2) for f in range(v.shape[1])], 1)
+        seen.append(v)
+        return v
+
+    monkeypatch.setattr(train, "_sample_parts", half_still)
+    train.rl_stage(_args(tiny_ckpt, tmp_path, steps=1, eval_every=0))
+    rec = next(json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line)
+    v = seen[0]
+    assert rec["still"] == bench.still_videos(v) == len(v) // 2
+    groups = torch.arange(len(v)) // 2
+    motion = bench.moved_pixels(v, bench.MOTION_LEVEL)
+    assert rec["still_push"] == pytest.approx(bench.pull(torch.tensor(rec["A"]), -motion, groups))
+    assert rec["still_push"] != pytest.approx(bench.pull(torch.tensor(rec["A"]), motion, groups))
 
 
 def test_a_nan_stops_the_run_naming_step_and_quantity(tiny_ckpt, tmp_path, monkeypatch):
