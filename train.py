@@ -1149,8 +1149,9 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
             "adv_abs": float(A_all.abs().mean()),
             # the collapse to still videos (docs/given-t.md), step by step: how many rollouts show nothing moving
-            # (bench.still_videos), and how far A points towards less motion (bench.pull, as bench.py --rank_rdistill)
-            "still": int(rewards["still"].sum()),
+            # (bench.still_videos), their mean motion (bench.moved_pixels at bench.MOTION_LEVEL), and how far A points
+            # towards less motion (bench.pull, as bench.py --rank_rdistill)
+            "still": int(rewards["still"].sum()), "motion": float(rewards["motion"].mean()),
             "still_push": bench.pull(A_all, (-rewards["motion"]).tolist(), groups) if A_all.dim() == 1 else None,
             "A": [round(a, 6) for a in A_all.tolist()] if A_all.dim() == 1 else [[round(a, 6) for a in row]
                                                                                  for row in A_all.tolist()],

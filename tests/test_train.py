@@ -142,8 +142,8 @@ def test_a_failing_judge_is_counted_and_skipped(tiny_ckpt, tmp_path, monkeypatch
 
 
 def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckpt, tmp_path, monkeypatch):
-    """The collapse monitor in each rl step's record: how many rollouts show nothing moving (bench.still_videos) and
-    the advantages' pull towards less motion (bench.pull of A on -motion, within the groups)."""
+    """The collapse monitor in each rl step's record: how many rollouts show nothing moving (bench.still_videos), their
+    mean motion, and the advantages' pull towards less motion (bench.pull of A on -motion, within the groups)."""
     real, seen = train._sample_parts, []
 
     def half_still(*a):
@@ -160,6 +160,7 @@ def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckp
     assert rec["still"] == bench.still_videos(v) == len(v) // 2
     groups = torch.arange(len(v)) // 2
     motion = bench.moved_pixels(v, bench.MOTION_LEVEL)
+    assert rec["motion"] == pytest.approx(motion.mean())
     assert rec["still_push"] == pytest.approx(bench.pull(torch.tensor(rec["A"]), -motion, groups))
     assert rec["still_push"] != pytest.approx(bench.pull(torch.tensor(rec["A"]), motion, groups))
 
