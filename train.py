@@ -1454,15 +1454,19 @@ def rl_stage(args: Args) -> dict:
                "table": rows}
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
-    plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args)
+    steps = [r for r in map(json.loads, open(os.path.join(args.run_dir, "rl.jsonl"))) if "motion" in r]
+    plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args, steps)
     print("\n".join(table))
     print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")
     return summary
 
 
-def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
-    plt, fig, axes = bench.figure(3, width=4)
+def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = ()) -> None:
+    """The bench scores at each evaluation beside the Demonstrator's, and a fourth panel for the collapse to still
+    videos: the share of still videos on the bench and, step by step from `steps` (rl.jsonl's Executor records), the
+    share of still training rollouts and their mean motion relative to the first logged step's."""
+    plt, fig, axes = bench.figure(4, width=4)
     for ax, key in zip(axes, ("task", "consistency", "avg")):
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
         ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
@@ -1470,6 +1474,19 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args) -> None:
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
+    ax = axes[3]
+    if steps:
+        x = [r["step"] for r in steps]
+        ax.plot(x, [r["still"] / len(r["A"]) for r in steps], lw=1, label="training rollouts still")
+        ax.plot(x, [r["motion"] / max(steps[0]["motion"], 1e-9) for r in steps], lw=1,
+                label="training rollouts' motion / step 1's")
+    ax.plot([e["step"] for e in evals], [e.get("still", float("nan")) for e in evals], "ko", ms=3,
+            label="bench videos still")
+    ax.set_xlabel("RL step")
+    ax.set_ylabel("share")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
     fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
                  f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\n"
                  f"Executor given {executor_given(args.executor_prompt)}")

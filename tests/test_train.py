@@ -153,7 +153,9 @@ def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckp
         seen.append(v)
         return v
 
+    plotted, plot = [], train.plot_rl_curve
     monkeypatch.setattr(train, "_sample_parts", half_still)
+    monkeypatch.setattr(train, "plot_rl_curve", lambda *a: plotted.append(a[-1]) or plot(*a))
     train.rl_stage(_args(tiny_ckpt, tmp_path, steps=1, eval_every=0))
     rec = next(json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line)
     v = seen[0]
@@ -161,6 +163,7 @@ def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckp
     groups = torch.arange(len(v)) // 2
     motion = bench.moved_pixels(v, bench.MOTION_LEVEL)
     assert rec["motion"] == pytest.approx(motion.mean())
+    assert plotted == [[rec]]            # rl_curve.png's collapse panel reads the step records
     assert rec["still_push"] == pytest.approx(bench.pull(torch.tensor(rec["A"]), -motion, groups))
     assert rec["still_push"] != pytest.approx(bench.pull(torch.tensor(rec["A"]), motion, groups))
 
