@@ -1465,7 +1465,7 @@ def rl_stage(args: Args) -> dict:
 def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = ()) -> None:
     """The bench scores at each evaluation beside the Demonstrator's, and a fourth panel for the collapse to still
     videos: the share of still videos on the bench and, step by step from `steps` (rl.jsonl's Executor records), the
-    share of still training rollouts and their mean motion relative to the first logged step's."""
+    share of still training rollouts and their mean motion relative to the first 10 logged steps'."""
     plt, fig, axes = bench.figure(4, width=4)
     for ax, key in zip(axes, ("task", "consistency", "avg")):
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
@@ -1478,8 +1478,8 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = 
     if steps:
         x = [r["step"] for r in steps]
         ax.plot(x, [r["still"] / len(r["A"]) for r in steps], lw=1, label="training rollouts still")
-        ax.plot(x, [r["motion"] / max(steps[0]["motion"], 1e-9) for r in steps], lw=1,
-                label="training rollouts' motion / step 1's")
+        first = max(np.mean([r["motion"] for r in steps[:10]]), 1e-9)   # one step's batch alone is noisy
+        ax.plot(x, [r["motion"] / first for r in steps], lw=1, label="training rollouts' motion / first 10 steps'")
     ax.plot([e["step"] for e in evals], [e.get("still", float("nan")) for e in evals], "ko", ms=3,
             label="bench videos still")
     ax.set_xlabel("RL step")
