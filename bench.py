@@ -144,15 +144,18 @@ STILL_LEVEL = 16   # still_videos: a pixel has moved when a colour channel is mo
 MOTION_LEVEL = 32  # rank_rdistill's and the rl stage's motion: pixel-frames more than this many levels off frame 0
 
 
-def moved_pixels(videos: np.ndarray, level: int) -> np.ndarray:
-    """(n,) int: how many pixel-frames of each video (frames 1..) differ from its first frame by more than `level`
-    of 255 in some colour channel. videos: uint8 (n, F, H, W, 3); one frame at a time, so that a real-size video
-    never needs a whole int16 copy."""
-    first = videos[:, :1].astype(np.int16)
-    counts = np.zeros(len(videos), dtype=np.int64)
+def moved_pixels(videos: np.ndarray, level) -> np.ndarray:
+    """How many pixel-frames of each video (frames 1..) differ from its first frame by more than `level` of 255 in
+    some colour channel: (n,) int for one level, (n, k) for a tuple of k levels, counted in the same single pass.
+    videos: uint8 (n, F, H, W, 3); one frame at a time and without a wider copy, so a real-size video stays cheap."""
+    levels = np.atleast_1d(level)
+    first = videos[:, 0]
+    counts = np.zeros((len(videos), len(levels)), dtype=np.int64)
     for f in range(1, videos.shape[1]):
-        counts += (np.abs(videos[:, f:f + 1].astype(np.int16) - first).max(-1) > level).sum((1, 2, 3))
-    return counts
+        frame = videos[:, f]
+        diff = (np.maximum(frame, first) - np.minimum(frame, first)).max(-1)    # uint8 |frame - first|, no overflow
+        counts += (diff[..., None] > levels).sum((1, 2))
+    return counts[:, 0] if np.ndim(level) == 0 else counts
 
 
 def still_videos(videos: np.ndarray, level: int = STILL_LEVEL) -> int:

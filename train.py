@@ -1106,8 +1106,9 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
     local = judge_rollouts(videos, tasks, args.task_reward)
-    local["motion"] = torch.tensor(bench.moved_pixels(videos, bench.MOTION_LEVEL), dtype=torch.float32)
-    local["still"] = torch.tensor(bench.moved_pixels(videos, bench.STILL_LEVEL) == 0, dtype=torch.float32)
+    moved = bench.moved_pixels(videos, (bench.MOTION_LEVEL, bench.STILL_LEVEL))   # one pass over the videos
+    local["motion"] = torch.tensor(moved[:, 0], dtype=torch.float32)
+    local["still"] = torch.tensor(moved[:, 1] == 0, dtype=torch.float32)
     for p in parts:   # the Demonstrator along the Executor's trajectories: Eq. 9 uses them all, Eq. 11 one each
         p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, teacher) if args.lambda_distill > 0 else None
     local["distill"] = local["r_distill"] = torch.zeros(n)

@@ -56,6 +56,7 @@ def test_still_videos_counts_videos_where_nothing_moved():
     assert bench.still_videos(videos[:, :1]) == 4    # a single frame cannot move
     assert bench.moved_pixels(videos, 16).tolist() == [0, 1, 0, 0]   # pixel-frames moved, video by video
     assert bench.moved_pixels(videos, 15).tolist() == [0, 1, 1, 0]
+    assert bench.moved_pixels(videos, (16, 15)).tolist() == [[0, 0], [1, 1], [0, 1], [0, 0]]   # one pass, both
 
 
 def test_mean_and_spread_over_seeds():
