@@ -611,11 +611,11 @@ def save_figure(plt, fig, path: str) -> None:
     plt.close(fig)
 
 
-def curve_band(ax, runs: list[list[dict]], key: str, label: str) -> None:
+def curve_band(ax, runs: list[list[dict]], key: str, label: str, marker: str = "o", color: str | None = None) -> None:
     """Mean over seeds of eval curves (lists of {step, key}) with a min-max band."""
     steps = sorted(set.intersection(*[{e["step"] for e in r} for r in runs]))
     vals = np.array([[next(e[key] for e in r if e["step"] == s) for s in steps] for r in runs])
-    line, = ax.plot(steps, vals.mean(0), marker="o", ms=3, label=label)
+    line, = ax.plot(steps, vals.mean(0), marker=marker, ms=3, label=label, color=color)
     if len(runs) > 1:
         ax.fill_between(steps, vals.min(0), vals.max(0), color=line.get_color(), alpha=0.15)
 
@@ -629,52 +629,81 @@ def file_digest(path: str) -> str:
 
 
 def read_run(run_dir: str) -> dict:
-    """A train.py rl run: its evaluations (step, task, agent, consistency, avg) from rl.jsonl, and the fixed rows
-    (base given T, Demonstrator) from rl_summary.json when the run finished."""
+    """A train.py rl run: its evaluations (step, task, agent, consistency, avg, still) from rl.jsonl, the share of
+    still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step `still` count over
+    its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from rl_summary.json when the
+    run finished."""
     import os
     path = os.path.join(run_dir, "rl.jsonl")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
-    evals = [r for r in map(json.loads, open(path)) if r.get("eval")]
+    records = list(map(json.loads, open(path)))
+    evals = [r for r in records if r.get("eval")]
+    steps = [{"step": r["step"], "still": r["still"] / len(r["A"])} for r in records
+             if not r.get("eval") and "still" in r and r.get("A")]
     summ = os.path.join(run_dir, "rl_summary.json")
     summary = json.load(open(summ)) if os.path.isfile(summ) else {}
-    return {"evals": evals, "fixed": summary.get("table", {}),
+    return {"evals": evals, "steps": steps, "fixed": summary.get("table", {}),
             "prompt": summary.get("args", {}).get("executor_prompt", "task")}
+
+
+def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
+    """read_run's per-step still shares as a trailing mean over `window` Executor steps (one batch of 32 is noisy):
+    [{step, still}], the first window - 1 steps left out."""
+    s = np.array([r["still"] for r in steps])
+    means = np.convolve(s, np.ones(window) / window, mode="valid")
+    return [{"step": r["step"], "still": float(m)} for r, m in zip(steps[window - 1:], means)]
 
 
 def compare_runs(runs: dict, path: str | None = None) -> str:
     """Curves of several rl runs on one figure -- task and consistency vs step, the Demonstrator as a dashed line
-    (the paper's Fig. 5 layout) -- and a markdown table of start, peak and end. `runs` maps a label to a run dir, or
-    to a list of run dirs (one per seed): then each curve is the mean over seeds with a min-max band (curve_band),
-    each cell mean ± sd, and the peak is the mean curve's."""
+    (the paper's Fig. 5 layout), a third panel for the collapse to still videos where the runs logged it (the share
+    of still training rollouts, a trailing mean over 10 steps, rolling_still) -- and a markdown table of start, peak
+    and end. `runs` maps a label to a run dir, or to a list of run dirs (one per seed): then each curve is the mean
+    over seeds with a min-max band (curve_band), each cell mean ± sd, and the peak is the mean curve's."""
     groups = {label: [read_run(d) for d in ([ds] if isinstance(ds, str) else ds)] for label, ds in runs.items()}
 
     def cell(xs):
+        if any(x is None for x in xs):   # a run from before the still count was logged
+            return "–"
         return f"{xs[0]:.3f}" if len(xs) == 1 else fmt(xs)
 
-    rows = ["| run | task @0 | task peak (step) | task @end | consistency @end | agent @end |", "|---|---|---|---|---|---|"]
+    rows = ["| run | task @0 | task peak (step) | task @end | consistency @end | agent @end | still videos @end | "
+            "still training rollouts, last 10 steps |", "|---|---|---|---|---|---|---|---|"]
     for label, rs in groups.items():
         evs = [r["evals"] for r in rs]
         steps = sorted(set.intersection(*[{e["step"] for e in ev} for ev in evs]))
         mean_task = {s: np.mean([next(e["task"] for e in ev if e["step"] == s) for ev in evs]) for s in steps}
         peak = max(steps, key=lambda s: mean_task[s])
         end = [ev[-1] for ev in evs]
+        last = [np.mean([x["still"] for x in r["steps"][-10:]]) if r["steps"] else None for r in rs]
         rows.append(f"| {label} | {cell([ev[0]['task'] for ev in evs])} | {mean_task[peak]:.3f} ({peak}) | "
                     f"{cell([e['task'] for e in end])} | {cell([e['consistency'] for e in end])} | "
-                    f"{cell([e['agent'] for e in end])} |")
+                    f"{cell([e['agent'] for e in end])} | {cell([e.get('still') for e in end])} | {cell(last)} |")
     if path:
-        plt, fig, axes = figure(2, width=5.5)
+        stills = {label: [rolling_still(r["steps"]) for r in rs] for label, rs in groups.items()
+                  if all(len(r["steps"]) >= 10 for r in rs)}
+        plt, fig, axes = figure(3 if stills else 2, width=4.5 if stills else 5.5)
         demo = next((r["fixed"].get(DEMO_ROW) for rs in groups.values() for r in rs if r["fixed"]), None)
         prompts = {r["prompt"] for rs in groups.values() for r in rs}
         given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
         seeds = {len(rs) for rs in groups.values()}
         for ax, key in zip(axes, ("task", "consistency")):
-            for label, rs in groups.items():
-                curve_band(ax, [r["evals"] for r in rs], key, label)
+            for i, (label, rs) in enumerate(groups.items()):
+                curve_band(ax, [r["evals"] for r in rs], key, label, color=f"C{i}")
             if demo:
                 ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
             ax.set_xlabel("step")
             ax.set_ylabel(f"bench {key}")
+            ax.grid(alpha=0.3)
+        if stills:
+            ax = axes[2]
+            for i, label in enumerate(groups):   # the same colour per label as in the other panels
+                if label in stills:
+                    curve_band(ax, stills[label], "still", label, marker="", color=f"C{i}")
+            ax.set_xlabel("step")
+            ax.set_ylabel("still training rollouts (share, mean of 10 steps)")
+            ax.set_ylim(-0.02, 1.02)
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=7)
         band = "" if seeds == {1} else "; mean over seeds, min-max band"
@@ -724,7 +753,8 @@ def main(argv=None):
                    help="with --gallery: a toy Executor checkpoint (train.py's executor_*.pt) for the last row")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
     p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR[,RUN_DIR...]", default=None,
-                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png); several "
+                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png; a third "
+                        "panel, the still training rollouts' share, where the runs logged it); several "
                         "comma-separated dirs under one label are seeds: mean, sd and a min-max band")
     p.add_argument("--handoff", metavar="A,B", default=None,
                    help="instead of one condition: switch the prompt from condition A to B after k of the Euler steps, "

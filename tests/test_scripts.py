@@ -134,18 +134,31 @@ def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
 
 
 def test_compare_runs_on_fake_runs(tmp_path):
+    import PIL.Image
+
     import bench
     for name, tasks in (("a", [0.1, 0.3, 0.2]), ("b", [0.1, 0.0, 0.05])):
         d = tmp_path / name
         d.mkdir()
         lines = [{"eval": True, "step": 10 * i, "task": t, "agent": 0.5, "consistency": 0.9, "avg": 0.5}
                  for i, t in enumerate(tasks)] + [{"step": 1, "loss": 0.1}]
+        if name == "a":   # a run that logged its still rollouts (since stop 78): 0 of 4 at steps 1, 2, then 2 of 4
+            lines[-2]["still"] = 0.25
+            lines[-1:] = [{"step": k, "still": 0 if k <= 2 else 2, "A": [0.0] * 4} for k in range(1, 13)]
         (d / "rl.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
     json.dump({"table": {"Base + VLM (Demonstrator, toy VLM's D)": {"task": 0.6, "consistency": 0.9}}},
               open(tmp_path / "a" / "rl_summary.json", "w"))
     table = bench.compare_runs({"A": str(tmp_path / "a"), "B": str(tmp_path / "b")}, str(tmp_path / "cmp.png"))
     assert "| A | 0.100 | 0.300 (10) | 0.200 |" in table and "| B | 0.100 | 0.100 (0) | 0.050 |" in table
-    assert (tmp_path / "cmp.png").stat().st_size > 1000
+    # still videos at the end and the still training rollouts' share over the last 10 steps (3..12: 2 of 4 each);
+    # B logged neither
+    rows = table.splitlines()
+    assert rows[2].endswith("| 0.500 | 0.250 | 0.500 |") and rows[3].endswith("| – | – |")
+    rolled = bench.rolling_still(bench.read_run(str(tmp_path / "a"))["steps"])
+    assert [(r["step"], round(r["still"], 3)) for r in rolled] == [(10, 0.4), (11, 0.45), (12, 0.5)]
+    assert PIL.Image.open(tmp_path / "cmp.png").size[0] > 1400      # three panels: the still share is drawn
+    bench.compare_runs({"B": str(tmp_path / "b")}, str(tmp_path / "two.png"))
+    assert PIL.Image.open(tmp_path / "two.png").size[0] < 1300      # two: nothing logged to draw
     # two seeds of one setting: cells are mean ± sd, the peak is the mean curve's (0.15 at step 10: (0.3 + 0.0) / 2)
     table = bench.compare_runs({"A+B": [str(tmp_path / "a"), str(tmp_path / "b")]}, str(tmp_path / "band.png"))
     assert "| A+B | 0.100 ± 0.000 | 0.150 (10) | 0.125 ± 0.106 | 0.900 ± 0.000 |" in table
