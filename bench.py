@@ -649,7 +649,9 @@ def read_run(run_dir: str) -> dict:
 
 def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
     """read_run's per-step still shares as a trailing mean over `window` Executor steps (one batch of 32 is noisy):
-    [{step, still}], the first window - 1 steps left out."""
+    [{step, still}], the first window - 1 steps left out; [] for a run with fewer steps (or none logged)."""
+    if len(steps) < window:
+        return []
     s = np.array([r["still"] for r in steps])
     means = np.convolve(s, np.ones(window) / window, mode="valid")
     return [{"step": r["step"], "still": float(m)} for r, m in zip(steps[window - 1:], means)]
@@ -662,6 +664,7 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
     and end. `runs` maps a label to a run dir, or to a list of run dirs (one per seed): then each curve is the mean
     over seeds with a min-max band (curve_band), each cell mean ± sd, and the peak is the mean curve's."""
     groups = {label: [read_run(d) for d in ([ds] if isinstance(ds, str) else ds)] for label, ds in runs.items()}
+    stills = {label: [rolling_still(r["steps"]) for r in rs] for label, rs in groups.items()}
 
     def cell(xs):
         if any(x is None for x in xs):   # a run from before the still count was logged
@@ -676,14 +679,13 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         mean_task = {s: np.mean([next(e["task"] for e in ev if e["step"] == s) for ev in evs]) for s in steps}
         peak = max(steps, key=lambda s: mean_task[s])
         end = [ev[-1] for ev in evs]
-        last = [np.mean([x["still"] for x in r["steps"][-10:]]) if r["steps"] else None for r in rs]
+        last = [rolled[-1]["still"] if rolled else None for rolled in stills[label]]
         rows.append(f"| {label} | {cell([ev[0]['task'] for ev in evs])} | {mean_task[peak]:.3f} ({peak}) | "
                     f"{cell([e['task'] for e in end])} | {cell([e['consistency'] for e in end])} | "
                     f"{cell([e['agent'] for e in end])} | {cell([e.get('still') for e in end])} | {cell(last)} |")
     if path:
-        stills = {label: [rolling_still(r["steps"]) for r in rs] for label, rs in groups.items()
-                  if all(len(r["steps"]) >= 10 for r in rs)}
-        plt, fig, axes = figure(3 if stills else 2, width=4.5 if stills else 5.5)
+        drawn = [label for label, curves in stills.items() if all(curves)]   # every seed logged its still rollouts
+        plt, fig, axes = figure(3 if drawn else 2, width=4.5 if drawn else 5.5)
         demo = next((r["fixed"].get(DEMO_ROW) for rs in groups.values() for r in rs if r["fixed"]), None)
         prompts = {r["prompt"] for rs in groups.values() for r in rs}
         given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
@@ -696,10 +698,10 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
             ax.set_xlabel("step")
             ax.set_ylabel(f"bench {key}")
             ax.grid(alpha=0.3)
-        if stills:
+        if drawn:
             ax = axes[2]
             for i, label in enumerate(groups):   # the same colour per label as in the other panels
-                if label in stills:
+                if label in drawn:
                     curve_band(ax, stills[label], "still", label, marker="", color=f"C{i}")
             ax.set_xlabel("step")
             ax.set_ylabel("still training rollouts (share, mean of 10 steps)")
