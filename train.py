@@ -370,6 +370,11 @@ def parse_args(argv=None) -> Args:
                  "clip_range", "alternate"):
         if getattr(args, name) < 0:
             p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
+    for name in ("lr", "pretrain_lr", "lora_alpha", "ghuber_power", "nft_beta", "motion_weight"):
+        if getattr(args, name) <= 0:
+            p.error(f"--{name} must be > 0, got {getattr(args, name)}")
+    if args.weight_decay < 0 or args.loss_power < 0:
+        p.error("--weight_decay and --loss_power must be >= 0")
     if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:
         p.error("at least one of --lambda_task, --lambda_distill, --lambda_cons must be > 0")
     if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):

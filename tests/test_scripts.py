@@ -81,6 +81,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--variant", "on,bogus"], "unknown 'bogus'"),
                       (["--trainer", "ppo"], "--trainer: unknown 'ppo'"),
                       (["--group_size", "1"], "--group_size must be >= 2"), (["--beta_d", "-0.1"], "--beta_d must be >= 0"),
+                      (["--lr", "-1"], "--lr must be > 0"), (["--ghuber_power", "0"], "--ghuber_power must be > 0"),
                       (["--stage", "pretrain", "--point_weight", "0.1"], "it needs --relate"),
                       (["--stage", "pretrain", "--p_task_words", "1.5"], "--p_task_words must lie in [0, 1]"),
                       (["--stage", "pretrain", "--relate", "--point_goal_only"], "it needs --point_weight > 0"),
