@@ -77,8 +77,8 @@ def _pick_states(xs: torch.Tensor, ts: torch.Tensor, generator: torch.Generator 
     """One random grid state per sample: k ~ U{0 .. S-1} (the final state t = 1 is never an input of the sampler).
     xs (S+1, B, ...) -> x (B, ...), t (B,). shard = (offset, total): these B samples are rows offset.. of a batch of
     `total` split across processes; k is drawn for the whole batch and sliced (rl.Rollouts.shard).
-    window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window; docs/given-t.md's
-    flow windows). Without one the draws are the same as with window (0, 1)."""
+    window = (lo, hi): k uniform over the grid steps with lo <= t_k < hi only (train.py --state_window;
+    docs/given-t.md's flow windows). Without one the draws are the same as with window (0, 1)."""
     k = _pick_index(xs, ts, generator, shard, window)
     return xs[k, torch.arange(xs.shape[1], device=xs.device)].detach(), ts[k]
 
@@ -123,7 +123,10 @@ def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, t
 def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
                 shard: tuple | None = None, window: tuple | None = None, motion_weight: float = 1.0,
                 teacher_v: torch.Tensor | None = None) -> torch.Tensor:
-    """Eq. 11: L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
+    """Eq. 11:
+
+        L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
+
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
     gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
     of the integral over [lo, hi) only, up to the factor hi - lo). `teacher_v`: the Demonstrator's velocities along

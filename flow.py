@@ -132,13 +132,14 @@ def sde_step(v: torch.Tensor, x: torch.Tensor, t: torch.Tensor, dt: float, noise
 
 def sample_sde(v_theta: VelocityField, x_0: torch.Tensor, steps: int, noise_level: float = 0.7,
                generator: torch.Generator | None = None, noises: torch.Tensor | None = None):
-    """App. A.9 (Flow-GRPO [40]): denoising as a multi-step MDP, a_k = x_{t_{k+1}} ~ pi_theta(. | s_k = (c, t_k, x_{t_k})).
-    Rolls out the SDE of sde_step on the uniform grid from t = 0 to t = 1. Returns (xs (steps + 1, B, ...),
-    ts (steps + 1,), log_probs (B, steps)): every state and the log-probability of every transition
-    x_{t_k} -> x_{t_{k+1}} under the policy that drew it (Flow-GRPO's old log-probs). noise_level = 0 would be the
-    ODE, but the Gaussian has no density then; use sample_ode. Wrap in torch.no_grad() for rollouts.
-    `noises` (steps, B, ...): the standard normal draws to use instead of drawing them (a multi-process run draws
-    them for the whole batch and gives each process its slice, so it samples what one process would)."""
+    """App. A.9 (Flow-GRPO [40]): denoising as a multi-step MDP,
+    a_k = x_{t_{k+1}} ~ pi_theta(. | s_k = (c, t_k, x_{t_k})). Rolls out the SDE of sde_step on the uniform grid
+    from t = 0 to t = 1. Returns (xs (steps + 1, B, ...), ts (steps + 1,), log_probs (B, steps)): every state and
+    the log-probability of every transition x_{t_k} -> x_{t_{k+1}} under the policy that drew it (Flow-GRPO's old
+    log-probs). noise_level = 0 would be the ODE, but the Gaussian has no density then; use sample_ode. Wrap in
+    torch.no_grad() for rollouts. `noises` (steps, B, ...): the standard normal draws to use instead of drawing
+    them (a multi-process run draws them for the whole batch and gives each process its slice, so it samples what
+    one process would)."""
     if noise_level <= 0:
         raise ValueError("sample_sde needs noise_level > 0 (noise_level 0 is the ODE: use sample_ode)")
     ts = time_grid(steps, x_0.device)

@@ -229,7 +229,8 @@ def gaussian_kl(mu_p: torch.Tensor, mu_q: torch.Tensor, s: torch.Tensor) -> torc
 def flow_grpo(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     """App. A.9 (Flow-GRPO [40]): maximise
 
-        J = E[ (1/G) sum_i (1/S) sum_k ( min(r_k^i A^i, clip(r_k^i, 1 - eps, 1 + eps) A^i) - beta KL(pi_theta || pi_ref) ) ],
+        J = E[ (1/G) sum_i (1/S) sum_k ( min(r_k^i A^i, clip(r_k^i, 1 - eps, 1 + eps) A^i)
+                                           - beta KL(pi_theta || pi_ref) ) ],
         r_k^i = p_theta(x_{k+1}^i | x_k^i, c) / p_theta_old(x_{k+1}^i | x_k^i, c),
 
     with the old log-probs those recorded by the sampler (ro.log_probs) and the KL between the two Gaussian
@@ -349,9 +350,9 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
 
 def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
-    """Sec. 3's third approach to L_RL, DiffusionNFT [71] (online RL with the forward process). Each final sample gets an optimality probability
-    r = 1/2 + 1/2 clip(A / A_max, -1, 1) (A_max = 5, the advantage clip). Around the old velocity v_old = sg(v_theta_old)
-    two implicit policies are formed,
+    """Sec. 3's third approach to L_RL, DiffusionNFT [71] (online RL with the forward process). Each final sample
+    gets an optimality probability r = 1/2 + 1/2 clip(A / A_max, -1, 1) (A_max = 5, the advantage clip). Around the
+    old velocity v_old = sg(v_theta_old) two implicit policies are formed,
 
         v+ = (1 - beta) v_old + beta v_theta,        v- = (1 + beta) v_old - beta v_theta,
 
