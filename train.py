@@ -367,14 +367,13 @@ def parse_args(argv=None) -> Args:
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
-                 "clip_range", "alternate"):
+                 "clip_range", "alternate", "weight_decay", "loss_power"):
         if getattr(args, name) < 0:
             p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
-    for name in ("lr", "pretrain_lr", "lora_alpha", "ghuber_power", "nft_beta", "motion_weight"):
+    for name in ("lr", "pretrain_lr", "lora_alpha", "ghuber_power", "nft_beta", "motion_weight",
+                 "distill_motion_weight"):
         if getattr(args, name) <= 0:
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
-    if args.weight_decay < 0 or args.loss_power < 0:
-        p.error("--weight_decay and --loss_power must be >= 0")
     if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:
         p.error("at least one of --lambda_task, --lambda_distill, --lambda_cons must be > 0")
     if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):
@@ -415,8 +414,6 @@ def parse_args(argv=None) -> Args:
     if args.demonstrator == "executor" and (args.stage != "rl" or args.alternate):
         p.error("--demonstrator executor is the rl stage's Alg. 1 with a moving Demonstrator; --alternate trains a "
                 "Demonstrator of its own")
-    if args.distill_motion_weight <= 0:
-        p.error(f"--distill_motion_weight must be > 0, got {args.distill_motion_weight}")
     if args.distill_motion_weight != 1 and args.model != "toy":
         p.error("--distill_motion_weight weighs pixels against the first frame: toy model only")
     if args.distill_motion_weight != 1 and not (_draws_demonstrator_states(args)
