@@ -1,5 +1,6 @@
 """distill.py: losses vanish exactly when Executor and Demonstrator agree, Eq. 9 against a hand computation,
 detached states, DMD's gradient, and a numerical check of Proposition 1."""
+import copy
 import math
 
 import numpy as np
@@ -102,9 +103,9 @@ def test_motion_weight_weighs_the_pixels_the_demonstrator_moves():
     first frame, 1 elsewhere; w = 1 is Eq. 4's plain mean."""
     B, T, C, H, W = 2, 2, 3, 4, 4
     frame0 = torch.zeros(B, C, H, W)
-    x_t, t = torch.zeros(B, T, C, H, W), torch.tensor([0.5, 0.0])
+    x_t, t = torch.zeros(B, T, C, H, W), torch.tensor([0.0, 0.5])
     v_D = torch.zeros(B, T, C, H, W)
-    v_D[0, 1, :, 2, 3] = 1.0           # sample 0: the Demonstrator moves one pixel of frame 2 (x̂_1 = 0.5 there)
+    v_D[0, 1, :, 2, 3] = 1.0           # sample 0: the Demonstrator moves one pixel of frame 2 (x̂_1 = 1 there)
     v_E = v_D + 0.1                    # the Executor is off by 0.1 everywhere ...
     v_E[1, 0, 0, 0, 0] = 1.1           # ... and sample 1 by 1.1 at one value; its Demonstrator moves nothing
     c_D = {"frame0": frame0}
@@ -160,10 +161,46 @@ def test_dmd_gradient_is_zero_when_fake_equals_real_and_points_from_fake_to_real
     assert torch.all(x.grad == 0)  # fake score == real score: nothing to match
     x.grad = None
     distill.dmd_generator_loss(m, fake, x, c_E, c_D, torch.Generator().manual_seed(1)).backward()
-    assert x.grad.abs().sum() > 0
+    g = torch.Generator().manual_seed(1)                      # dmd_generator_loss's draws: t, then the noise
+    t = torch.rand(x.shape[0], generator=g).clamp(0.02, 0.98)
+    x_t = flow.interpolate(torch.randn(x.shape, generator=g), x.detach(), t)
+    with torch.no_grad(), models.adapters_disabled(m):
+        to_real = distill._denoise(m, x_t, t, c_D) - distill._denoise(fake, x_t, t, c_E)   # mu_real - mu_fake
+    cos = torch.nn.functional.cosine_similarity(-x.grad.flatten(1), to_real.flatten(1), dim=1)
+    assert to_real.abs().sum() > 0 and torch.allclose(cos, torch.ones_like(cos), atol=1e-5)   # descent: fake -> real
     loss = distill.dmd_fake_score_loss(fake, x.detach(), c_E)
     loss.backward()
     assert loss.item() > 0 and all(p.grad is not None for p in models.lora_parameters(fake))
+
+
+def test_fake_score_starts_as_the_base_with_only_its_own_lora_trainable(lora_model):
+    """make_fake_score copies the base, not the Executor: the Executor's adapters are folded away (B = 0)."""
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0.05)
+    fake = distill.make_fake_score(m)
+    t = torch.full((x0.shape[0],), 0.3)
+    with torch.no_grad():
+        with models.adapters_disabled(m):
+            base = m(x0, t, c_E)
+        assert not torch.allclose(m(x0, t, c_E), base)                    # the Executor differs from the base ...
+        torch.testing.assert_close(fake(x0, t, c_E), base)               # ... and the fake score starts as the base
+    assert {n for n, p in fake.named_parameters() if p.requires_grad} == {n for n, _ in fake.named_parameters()
+                                                                        if "lora_" in n}
+    _perturb(m, 0)
+
+
+def test_alg2s_teacher_takes_the_demonstrators_place(lora_model):
+    """teacher_velocity: the base with adapters off, or Alg. 2's separately trained `teacher` with its adapters on."""
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0)
+    teacher = copy.deepcopy(m)
+    _perturb(teacher, 0.05)
+    t = torch.full((x0.shape[0],), 0.3)
+    v = distill.teacher_velocity(m, x0, t, c_D, teacher)
+    with torch.no_grad():
+        torch.testing.assert_close(v, teacher(x0, t, c_D))
+        assert not torch.allclose(v, distill.teacher_velocity(m, x0, t, c_D))
+    assert not v.requires_grad
 
 
 def test_dmd_generator_is_the_clean_estimate_at_a_detached_state_of_the_executors_trajectory(lora_model):

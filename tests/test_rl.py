@@ -36,6 +36,9 @@ def test_reward_aggregation_on_a_hand_made_group():
     rewards, g = {"task": r_task, "distill": r_distill}, torch.zeros(4, dtype=torch.long)
     w = {"task": 1.0, "distill": 1.0}
     assert torch.allclose(rl.total_reward(rewards, w), r_task + r_distill)           # Eq. 10
+    assert torch.allclose(rl.total_reward(rewards, {"task": 0.5, "distill": 2.0}), 0.5 * r_task + 2.0 * r_distill)
+    no_judgment = {"task": r_task, "distill": torch.full((4,), float("nan"))}       # a weight of 0 leaves it out
+    assert torch.equal(rl.total_reward(no_judgment, {"task": 1.0, "distill": 0.0}), r_task)
     A_sum = rl.advantages(rewards, w, g, "sum", clip=None)
     # under plain sum the distillation reward barely moves the advantages ...
     assert torch.allclose(A_sum, torch.tensor([1.0, -1.0, 1.0, -1.0]), atol=1e-3)
@@ -222,6 +225,35 @@ def test_awm_weighting_on_hand_made_inputs():
     assert math.isclose(rl.awm_weight(torch.tensor([64.0]), torch.tensor([0.0]), "huber").item(), 8.0, rel_tol=1e-4)
     with pytest.raises(ValueError):
         rl.awm_weight(err, t, "cubic")
+
+
+def test_awm_ratio_per_time_or_per_sample_as_stated():
+    """At a later inner epoch (the LoRA moved since theta_old was recorded) AWM's ratio is
+    exp(log pi - log pi_old) per (sample, time) for exp_first and exp(mean_t log pi - mean_t log pi_old) per sample
+    for sum_first, log pi = -rho(||v - u||^2, t) at the held re-noising draws; with no clip binding the loss is
+    -mean(A r). The two differ once the log-ratios differ across times."""
+    A, n_t, losses = torch.randn(8), 3, {}
+    for kind in ("exp_first", "sum_first"):
+        torch.manual_seed(0)
+        model = Tiny()
+        models.add_lora(model, 2, 4.0)
+        cfg = rl.RLConfig(timesteps=n_t, ratio=kind, clip_range=100.0)
+        ro = _tiny_rollouts(model, seed=1)
+        rl.awm(model, ro, A, cfg, torch.Generator().manual_seed(0))                 # records theta_old's log pi
+        with torch.no_grad():
+            for p in models.lora_parameters(model):
+                p.add_(0.2 * torch.randn_like(p))
+        loss, _ = rl.awm(model, ro, A, cfg)
+        x_t, t, u = ro.draws["renoise"]
+        c = {k: v.repeat(n_t, *([1] * (v.dim() - 1))) for k, v in ro.c.items()}
+        with torch.no_grad():
+            logp = -rl.awm_weight(rl._sq(model(x_t, t, c) - u), t, cfg.weighting, cfg.ghuber_power).reshape(n_t, 8)
+        d = logp - ro.draws["awm_old"]                                                     # (n_t, N) log-ratios
+        assert d.abs().min() > 1e-4 and (d - d.mean(0)).abs().max() > 1e-3             # the LoRA moved, unevenly
+        r = d.exp() if kind == "exp_first" else d.mean(0).exp()[None]
+        assert torch.allclose(loss, -(A[None] * r).mean(), atol=1e-6), kind
+        losses[kind] = loss.item()
+    assert abs(losses["exp_first"] - losses["sum_first"]) > 1e-5
 
 
 def test_renoising_times_stratified_uniform_or_on_the_samplers_grid():
