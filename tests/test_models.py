@@ -72,6 +72,11 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(c
         with models.adapters_disabled(model):
             assert torch.equal(model(x, t, c), base)     # ... the Demonstrator did not
         assert not torch.allclose(model(x, t, c), base)  # and the adapters are back on after the block
+        with models.adapters_disabled(model):
+            with models.adapters_disabled(model):
+                pass
+            assert torch.equal(model(x, t, c), base)     # a nested block leaves them as it found them: off
+            assert torch.allclose(models.merge_lora(model)(x, t, c), base)   # switched off: dropped, not merged
     assert all(torch.equal(p, before[n]) for n, p in model.named_parameters() if "lora_" not in n)
     # merged: the Executor's outputs from a plain network with the base's parameter count (same sampling cost)
     merged = models.merge_lora(model)

@@ -400,17 +400,6 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
             assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (argv, r.stderr[-500:])
 
 
-def test_vlm_score_is_log_p_yes_minus_log_p_no():
-    logits = np.array([0.0, 3.0, 1.0, -2.0])               # ids: 1 = yes, 2 = no
-    j = reward.judgment_from_logits(logits, 1, 2)
-    lp = logits - np.log(np.exp(logits).sum())
-    assert j.yes is True and abs(j.score - (lp[1] - lp[2])) < 1e-9
-    j = reward.judgment_from_logits(np.array([0.0, 1.0, 3.0, -2.0]), 1, 2)
-    assert j.yes is False and j.score < 0
-    assert reward.judgment_from_logits(np.array([5.0, 1.0, 3.0, 0.0]), 1, 2).yes is None      # answered neither
-    assert reward.judgment_from_logits(np.array([np.nan, 1.0, 3.0, 0.0]), 1, 2).score is None
-
-
 def test_tiny_vlm_judge_batches_like_single_items():
     judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
     pairs = world.make_pairs(3, seed=1, error_rate=0.0)

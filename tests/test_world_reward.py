@@ -1,4 +1,5 @@
-"""world.py and the judges of reward.py on simulator-made videos, correct and with hand-made faults."""
+"""world.py and the judges of reward.py on simulator-made videos, correct and with hand-made faults; the VLM
+score from its logits."""
 import numpy as np
 import pytest
 
@@ -243,6 +244,37 @@ def test_vanishing_smear_and_new_object_are_caught():
         assert {w.split()[0] for w in reward.judge_consistency(video).why.split(", ")} <= set(reward.CONSISTENCY_FAULTS)
 
 
+def test_reshaped_teleport_by_two_pixels_and_each_fault_costs_three():
+    v = _video(SCENE, GOOD)                          # the red square moves 1 px a frame: plausible
+    assert reward.judge_consistency(v).yes
+    jump = v[[0, 0, 2, 3, 4, 5]]                     # ... 2 px from frame 1 to frame 2 (MAX_STEP 1.6)
+    assert reward.judge_consistency(jump).why == "teleports red"
+    grown = v.copy()
+    grown[3, 4:7, 4:7] = world.COLOURS["red"]        # frame 3: a 3x3 block joins the square, twice its pixels
+    j = reward.judge_consistency(grown)
+    assert j.why == "reshaped red" and j.score == 3.0 - 3.0 * 1
+    both = grown.copy()
+    both[2:, 12:15, 1:4] = world.COLOURS["yellow"]
+    j = reward.judge_consistency(both)
+    assert j.why == "appears yellow, reshaped red" and j.score == 3.0 - 3.0 * 2
+
+
+def test_task_margins_on_hand_made_centres():
+    """world.task_margin's rules in pixels, > 0 inside; a margin of exactly 0 is a no for the judges."""
+    tm = world.task_margin
+    assert tm("move_to", "blue circle", np.array([2, 2]), np.array([5, 4])) == 1.0        # Chebyshev 3 <= 4
+    assert tm("move_to", "blue circle", np.array([2, 2]), np.array([7, 2])) == -1.0
+    assert tm("level_with", "blue circle", np.array([2, 5]), np.array([12, 5.25])) == 0.25   # rows 0.25 apart
+    assert tm("level_with", "blue circle", np.array([5, 2]), np.array([5, 7])) == -4.5      # a column, not a row
+    for edge, xy in {"left": (0, 7), "right": (15, 7), "top": (7, 0), "bottom": (7, 15)}.items():
+        assert tm("edge", edge, np.array(xy), None) == 1.0, edge
+        assert tm("edge", edge, np.array([7.5, 7.5]), None) < 0, edge
+    assert tm("centre", "blue circle", None, np.array([7.5, 8.5])) == 0.0
+    assert tm("centre", "blue circle", None, np.array([9.0, 7.5])) == -0.5
+    assert reward._graded(0.0).yes is False and reward._graded(0.0).score < 0
+    assert reward._graded(0.01).yes is True and reward._graded(0.01).score > 0
+
+
 def test_first_person_pan():
     task = "[first-person view]: centre the blue circle"
     pan = _video(SCENE, Plan(-1, 1, 0, 3))  # blue circle from x=11 to x=8
@@ -259,3 +291,14 @@ def test_no_judgment_is_none_not_a_crash():
     bad = v.astype(float)
     bad[2, 0, 0, 0] = np.nan
     assert all(j.yes is None for j in reward.judge_all(bad, TASK).values())
+
+
+def test_vlm_score_is_log_p_yes_minus_log_p_no():
+    logits = np.array([0.0, 3.0, 1.0, -2.0])               # ids: 1 = yes, 2 = no
+    j = reward.judgment_from_logits(logits, 1, 2)
+    lp = logits - np.log(np.exp(logits).sum())
+    assert j.yes is True and abs(j.score - (lp[1] - lp[2])) < 1e-9
+    j = reward.judgment_from_logits(np.array([0.0, 1.0, 3.0, -2.0]), 1, 2)
+    assert j.yes is False and j.score < 0
+    assert reward.judgment_from_logits(np.array([5.0, 1.0, 3.0, 0.0]), 1, 2).yes is None      # answered neither
+    assert reward.judgment_from_logits(np.array([np.nan, 1.0, 3.0, 0.0]), 1, 2).score is None
