@@ -1,0 +1,203 @@
+"""Can the tests fail? Change one line of an equation or its wiring at a time, run the tests that guard that file,
+and report each change the tests let through ("survived"). Not part of the suite (it runs the suite's files again
+and again: about 25 minutes on two cores, most of it train.py's); run it after changing a formula or its tests:
+
+    python tests/mutants.py                 # every change below
+    python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
+
+Each change is (old line(s), new line(s), what it breaks): a sign, a factor, an axis, a threshold, a flag that does
+not arrive. The changes are made in a copy of the tracked files, never here. Exit status 1 if any change survives
+or no longer matches the code (then update the list beside the code it follows)."""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+UNIT = ["tests/test_rl.py", "tests/test_distill.py", "tests/test_flow.py"]
+JUDGES = ["tests/test_models.py", "tests/test_world_reward.py", "tests/test_distill.py"]
+
+# file -> (the test files to run, [(old, new, what it breaks)])
+MUTANTS = {
+    "flow.py": (UNIT, [
+        ("    mu = x + dt * (v - sb.pow(2) * (x - tb * v) / (2 * (1 - tb)))",
+         "    mu = x + dt * (v + sb.pow(2) * (x - tb * v) / (2 * (1 - tb)))", "the SDE's score term, its sign"),
+        ("    mu = x + dt * (v - sb.pow(2) * (x - tb * v) / (2 * (1 - tb)))",
+         "    mu = x + dt * (v - sb.pow(2) * (x - tb * v) / (1 - tb))", "the SDE's score term, its 1/2"),
+        ("    s = sig * dt ** 0.5 ", "    s = sig * dt ", "the SDE step's std sigma sqrt(dt)"),
+        ("    log_prob = (-0.5 * z2 - _bcast(s.log(), x) - 0.5 * math.log(2 * math.pi)).flatten(1).mean(1)",
+         "    log_prob = (-0.5 * z2 - _bcast(s.log(), x)).flatten(1).mean(1)", "the Gaussian log-density's constant"),
+        ("    return noise_level * ((1 - t) / t).sqrt()", "    return noise_level * (t / (1 - t)).sqrt()",
+         "sigma_t in Flow-GRPO's time convention"),
+        ("        x = x + (ts[k + 1] - ts[k]) * v_theta(x, t)",
+         "        x = x + (ts[k + 1] - ts[k]) * v_theta(x, ts[k + 1].expand(x.shape[0]))", "Euler at the step's end"),
+        ("        return v_u + scale * (v_cond(x, t) - v_u)", "        return v_cond(x, t) + scale * (v_cond(x, t) - v_u)",
+         "guidance from the conditional field"),
+    ]),
+    "distill.py": (UNIT, [
+        ("    return torch.cat([to_go[:, 1:], torch.zeros_like(to_go[:, :1])], 1)", "    return to_go",
+         "App. A.3's credit to go includes its own term"),
+        ("    return terms if per_step else terms.sum(1)", "    return terms if per_step else terms.mean(1)",
+         "Eq. 9 as a mean, not the Riemann sum"),
+        ("        terms.append(-(ts[k + 1] - ts[k]) * l_k)", "        terms.append((ts[k + 1] - ts[k]) * l_k)",
+         "Eq. 9's sign"),
+        ("    ks = torch.arange(S)\n", "    ks = torch.arange(S + 1)\n", "a state draw that can pick x_1"),
+        ("        g = (mu_fake - mu_real) / norm", "        g = (mu_real - mu_fake) / norm", "DMD's direction"),
+        ("    return x_t + flow._bcast(1 - t, x_t) * model(x_t, t, c)",
+         "    return x_t + flow._bcast(t, x_t) * model(x_t, t, c)", "the clean estimate in the other convention"),
+        ("            m.lora_B.data.zero_()", "            pass", "a fake score that keeps the Executor's LoRA"),
+        ("        x_hat = x_t + flow._bcast(1 - t, x_t) * v_D ", "        x_hat = x_t + flow._bcast(t, x_t) * v_D ",
+         "the motion weight's clean estimate"),
+        ("    return (model if teacher is None else teacher)(x_t, t, c_D)", "    return model(x_t, t, c_D)",
+         "Alg. 2's teacher ignored"),
+    ]),
+    "rl.py": (UNIT, [
+        ("        A[m] = (x - x.mean()) / (x.std(unbiased=False) + eps)",
+         "        A[m] = (x - x.mean()) / (x.std() + eps)", "the group std with 1/(G-1)"),
+        ("            A = torch.where(good, (A - a.mean()) / (a.std(unbiased=False) + eps), torch.zeros_like(A))",
+         "            pass", "gdpo without its batch standardisation"),
+        ("    return A.clamp(-clip, clip) if clip else A", "    return A", "no advantage clip"),
+        ("    return torch.maximum(-A * ratio, -A * ratio.clamp(1 - eps, 1 + eps))",
+         "    return torch.minimum(-A * ratio, -A * ratio.clamp(1 - eps, 1 + eps))", "PPO's max as a min"),
+        ("    return _sq(mu_p - mu_q) / (2 * s.pow(2))", "    return _sq(mu_p - mu_q) / (s.pow(2))",
+         "the Gaussian KL's 1/2"),
+        ("        return s * ((err + 1e-10).pow(power) - 1e-10 ** power) / power",
+         "        return s * ((err + 1e-10).pow(power) - 1e-10 ** power)", "generalised Huber without 1/p"),
+        ('    if kind == "t":\n        return s * err', '    if kind == "t":\n        return err', "AWM's t weighting"),
+        ("        return s * (err + 1e-10).sqrt()", "        return (err + 1e-10).sqrt()", "AWM's Huber weighting"),
+        ("            t = 0.98 * strata", "            t = 0.98 * torch.rand_like(strata)", "unstratified times"),
+        ("    pos, neg = (1 - b) * v_old + b * v, (1 + b) * v_old - b * v",
+         "    pos, neg = (1 + b) * v_old - b * v, (1 - b) * v_old + b * v", "NFT's implicit policies swapped"),
+        ("        ratio = (logp.mean(0) - old.mean(0)).exp() ", "        ratio = (logp - old).exp().mean(0) ",
+         "AWM's sum_first as exp_first"),
+        ("    loss = -(_per_step(A) * lp).sum(1).mean()", "    loss = -(_per_step(A) * lp).mean()",
+         "GRPO's log p(tau) as a mean over steps"),
+        ("        A = A.T.gather(0, k)", "        A = A.T.gather(0, k.clamp(max=0))", "AWM's per-step A at step 0"),
+        ("    return l_rl if (l_anchor is None or beta_d == 0) else l_rl + beta_d * l_anchor",
+         "    return l_rl if (l_anchor is None or beta_d == 0) else l_rl + l_anchor", "Eq. 12 without beta_d"),
+        ("    terms = [weights[k] * r for k, r in rewards.items() if weights.get(k, 0) != 0]",
+         "    terms = [r for k, r in rewards.items() if weights.get(k, 0) != 0]", "Eq. 10 without its lambdas"),
+    ]),
+    "models.py": (JUDGES, [
+        ("self.base, self.scale, self.enabled = base, alpha / rank, True",
+         "self.base, self.scale, self.enabled = base, alpha, True", "LoRA's alpha / r"),
+        ("            return self.base(x) + self.scale * (x @ self.lora_A.T) @ self.lora_B.T",
+         "            return self.base(x) + (x @ self.lora_A.T) @ self.lora_B.T", "a Linear LoRA without its scale"),
+        ("                m.base.weight.data += m.delta().detach()", "                pass", "merge_lora drops the LoRA"),
+        ("            if m.enabled:\n                m.base.weight.data += m.delta().detach()",
+         "            m.base.weight.data += m.delta().detach()", "merge_lora merges switched-off adapters"),
+        ("        for m, e in zip(layers, before):\n            m.enabled = e",
+         "        for m, e in zip(layers, before):\n            m.enabled = True", "adapters_disabled not nesting"),
+        ("    moving = (x_1 - frame0[:, None]).abs().sum(2, keepdim=True) > 0.05 ",
+         "    moving = (x_1 - frame0[:, None]).abs().sum(2, keepdim=True) > 5 ", "the moving-pixel threshold"),
+        ("    return 1 + (weight - 1) * moving.float()", "    return weight * moving.float()",
+         "the still pixels' weight"),
+    ]),
+    "reward.py": (JUDGES, [
+        ('        s = -1e-3  # the boundary counts as "no"', "        s = 1e-3", "the boundary a yes"),
+        ("    return _graded(margin + SLACK)", "    return _graded(margin)", "the task judge without its slack"),
+        ("    margin = max(world.task_margin(task.kind, task.target, a, t) for a in agents for t in targets)",
+         "    margin = min(world.task_margin(task.kind, task.target, a, t) for a in agents for t in targets)",
+         "the worst blob instead of the best"),
+        ("        return _graded(min(_max_disp(tracks[task.agent]) - 0.75, 1.25 - max(others, default=0.0)))",
+         "        return _graded(_max_disp(tracks[task.agent]) - 0.75)", "the agent judge ignores bystanders"),
+        ("    return _graded(min(shift - 0.75, 1.25 - spread))", "    return _graded(shift - 0.75)",
+         "a camera pan without the spread test"),
+        ("    return Judgment(bool(jt.yes and ja.yes), min(jt.score, ja.score), jt.why or ja.why)",
+         "    return Judgment(bool(jt.yes and ja.yes), max(jt.score, ja.score), jt.why or ja.why)",
+         "Fig. 10's AND as a max"),
+        ("                if min(x0, y0) > 1 and max(x1, y1) < W - 2:", "                if True:",
+         "leaving the view counted as vanishing"),
+        ("            if not bs[0].touches_border and not 0.6 <= bs[0].size / size0[c] <= 1.6:",
+         "            if not bs[0].touches_border and not 0.3 <= bs[0].size / size0[c] <= 3:", "the reshape range"),
+        ("                if max(abs(bs[0].cx - prev[0].cx), abs(bs[0].cy - prev[0].cy)) > MAX_STEP:",
+         "                if max(abs(bs[0].cx - prev[0].cx), abs(bs[0].cy - prev[0].cy)) > 3 * MAX_STEP:",
+         "the teleport threshold"),
+        ("        if (off_bg & off_palette).sum() > 4:", "        if (off_bg & off_palette).sum() > 40:",
+         "the smear threshold"),
+        ("    return Judgment(not bad, 3.0 - 3.0 * len(bad), why)",
+         "    return Judgment(not bad, 3.0 - 3.0 * min(len(bad), 1), why)", "3 points a fault"),
+        ("    score = float(logp[yes_id] - logp[no_id])", "    score = float(logp[yes_id])",
+         "the VLM score without log p(no)"),
+        ("    if int(logits.argmax()) not in (yes_id, no_id):", "    if False:", "a malformed answer judged"),
+    ]),
+    "world.py": (JUDGES, [
+        ("        return 4.0 - np.abs(a - np.asarray(target_xy, float)).max(-1)",
+         "        return 4.0 - np.abs(a - np.asarray(target_xy, float)).sum(-1)", "move_to's Chebyshev distance"),
+        ("        return 0.5 - np.abs(a[..., 1] - np.asarray(target_xy, float)[..., 1])",
+         "        return 0.5 - np.abs(a[..., 0] - np.asarray(target_xy, float)[..., 0])", "level_with's axis"),
+        ('    return {"left": 1.0 - a[..., 0], "right": a[..., 0] - (W - 2), "top": 1.0 - a[..., 1],',
+         '    return {"left": 1.0 - a[..., 0], "right": a[..., 0] - (W - 2), "top": 1.0 - a[..., 0],', "top's axis"),
+        ("        return 1.0 - np.abs(np.asarray(target_xy, float) - CENTRE).max(-1)",
+         "        return 1.0 - np.abs(np.asarray(target_xy, float) - CENTRE).min(-1)", "centre on one axis"),
+    ]),
+    "train.py": (["tests/test_train.py"], [
+        ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",
+         "        return rl.final_loss(l_rl, l_anchor, 1.0), info", "--beta_d not reaching Eq. 12"),
+        ('            local["distill"] = distill.distill_reward_to_go(terms)', '            local["distill"] = terms',
+         "per-step r_distill without the credit to go"),
+        ('        local["distill"] = local["r_distill"] = terms.sum(1)',
+         '        local["distill"] = local["r_distill"] = terms.mean(1)', "r_distill as a mean of Eq. 9's terms"),
+        ('    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}',
+         '    weights = {"task": args.lambda_task, "distill": 1.0, "consistency": args.lambda_cons}',
+         "--lambda_distill not reaching Eq. 10"),
+        ("        l_anchor = (distill.anchor_loss(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, gen, teacher, p.shard,",
+         "        l_anchor = (distill.anchor_loss(model, (p.ro.xs, p.ro.ts), p.c_D, p.c_D, gen, teacher, p.shard,",
+         "the anchor's Executor under c_D"),
+        ("                    distill.rollout(model, b.x_0[p.rows], p.c_D, train_steps(args), demonstrator=True))",
+         "                    distill.rollout(model, b.x_0[p.rows], p.c_E, train_steps(args), demonstrator=True))",
+         "Fig. 5 (iii)'s states under c_E"),
+        ("        p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, teacher) if args.lambda_distill",
+         "        p.vD = distill.teacher_velocities(model, (p.ro.xs, p.ro.ts), p.c_D, None) if args.lambda_distill",
+         "Alg. 2's teacher ignored by Eq. 9"),
+        ("    for _ in range(args.inner_epochs):", "    for _ in range(1):", "--inner_epochs ignored"),
+        ("        return rl.final_loss(l_rl, l_base, args.beta_phi), {}",
+         "        return rl.final_loss(l_rl, l_base, 0.0), {}", "--beta_phi ignored"),
+    ]),
+}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--only", default="", help="comma-separated files of MUTANTS, e.g. rl.py,distill.py")
+    args = p.parse_args(argv)
+    only = [f for f in args.only.split(",") if f]
+    unknown = [f for f in only if f not in MUTANTS]
+    if unknown:
+        p.error(f"--only: no changes listed for {', '.join(unknown)}; choose from {', '.join(MUTANTS)}")
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    todo = [(f, *m) for f in (only or MUTANTS) for m in MUTANTS[f][1]]
+    bad, t0 = [], time.time()
+    with tempfile.TemporaryDirectory() as tree:
+        for f in files:
+            os.makedirs(os.path.join(tree, os.path.dirname(f)), exist_ok=True)
+            shutil.copy2(os.path.join(ROOT, f), os.path.join(tree, f))
+        for i, (f, old, new, what) in enumerate(todo, 1):
+            path = os.path.join(tree, f)
+            with open(path) as fh:
+                src = fh.read()
+            if src.count(old) != 1:
+                verdict = f"STALE ({src.count(old)} matches)"
+            else:
+                with open(path, "w") as fh:
+                    fh.write(src.replace(old, new))
+                r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
+                                    *MUTANTS[f][0]], cwd=tree, capture_output=True, text=True)
+                with open(path, "w") as fh:
+                    fh.write(src)
+                verdict = "failed a test" if r.returncode == 1 else ("SURVIVED" if r.returncode == 0 else
+                                                                    f"pytest exit {r.returncode}")
+            if verdict != "failed a test":
+                bad.append(f"{f}: {what}: {verdict}")
+            print(f"[{i:2d}/{len(todo)}] {time.time() - t0:6.0f} s  {f}: {what}: {verdict}", flush=True)
+    print(f"{len(todo) - len(bad)} of {len(todo)} changes fail a test" + "".join(f"\n  {b}" for b in bad))
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
