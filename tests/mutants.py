@@ -21,6 +21,11 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 UNIT = ["tests/test_rl.py", "tests/test_distill.py", "tests/test_flow.py"]
 JUDGES = ["tests/test_models.py", "tests/test_world_reward.py", "tests/test_distill.py"]
+SCORES = [f"tests/test_report.py::test_{name}" for name in (
+    "denominators_count_discarded_judgments", "still_videos_counts_videos_where_nothing_moved",
+    "mean_and_spread_over_seeds", "pull_is_a_against_y_standardised_within_its_group", "subgroup_scores_for_fig7")] + [
+    f"tests/test_scripts.py::test_{name}" for name in (
+        "compare_runs_on_fake_runs", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws")]
 
 # file -> (the test files to run, [(old, new, what it breaks)])
 MUTANTS = {
@@ -36,7 +41,8 @@ MUTANTS = {
          "sigma_t in Flow-GRPO's time convention"),
         ("        x = x + (ts[k + 1] - ts[k]) * v_theta(x, t)",
          "        x = x + (ts[k + 1] - ts[k]) * v_theta(x, ts[k + 1].expand(x.shape[0]))", "Euler at the step's end"),
-        ("        return v_u + scale * (v_cond(x, t) - v_u)", "        return v_cond(x, t) + scale * (v_cond(x, t) - v_u)",
+        ("        return v_u + scale * (v_cond(x, t) - v_u)",
+         "        return v_cond(x, t) + scale * (v_cond(x, t) - v_u)",
          "guidance from the conditional field"),
     ]),
     "distill.py": (UNIT, [
@@ -88,7 +94,8 @@ MUTANTS = {
          "self.base, self.scale, self.enabled = base, alpha, True", "LoRA's alpha / r"),
         ("            return self.base(x) + self.scale * (x @ self.lora_A.T) @ self.lora_B.T",
          "            return self.base(x) + (x @ self.lora_A.T) @ self.lora_B.T", "a Linear LoRA without its scale"),
-        ("                m.base.weight.data += m.delta().detach()", "                pass", "merge_lora drops the LoRA"),
+        ("                m.base.weight.data += m.delta().detach()", "                pass",
+         "merge_lora drops the LoRA"),
         ("            if m.enabled:\n                m.base.weight.data += m.delta().detach()",
          "            m.base.weight.data += m.delta().detach()", "merge_lora merges switched-off adapters"),
         ("        for m, e in zip(layers, before):\n            m.enabled = e",
@@ -135,6 +142,33 @@ MUTANTS = {
          '    return {"left": 1.0 - a[..., 0], "right": a[..., 0] - (W - 2), "top": 1.0 - a[..., 0],', "top's axis"),
         ("        return 1.0 - np.abs(np.asarray(target_xy, float) - CENTRE).max(-1)",
          "        return 1.0 - np.abs(np.asarray(target_xy, float) - CENTRE).min(-1)", "centre on one axis"),
+    ]),
+    "bench.py": (SCORES, [
+        ("    succ = {k: sum(bool(j[k].yes) for j in judgments) for k in KEYS}",
+         "    succ = {k: sum(j[k].yes is not False for j in judgments) for k in KEYS}", "no judgment as a success"),
+        ("        succ[name], valid[name] = sum(bool(j[a].yes and j[b].yes) for j in both), len(both)",
+         "        succ[name], valid[name] = sum(bool(j[a].yes or j[b].yes) for j in both), len(both)",
+         "solved and by_agent as an or"),
+        ('    out["avg"] = float(np.mean([out[k] for k in KEYS]))',
+         '    out["avg"] = succ["avg"] / valid["avg"] if valid["avg"] else float("nan")',
+         "Avg over the fully judged videos, not the columns' mean"),
+        ("        counts += (diff[..., None] > levels).sum((1, 2))",
+         "        counts += (diff[..., None] >= levels).sum((1, 2))", "a pixel at the level counted as moved"),
+        ("        diff = (np.maximum(frame, first) - np.minimum(frame, first)).max(-1) ",
+         "        diff = (np.maximum(frame, first) - np.minimum(frame, first)).min(-1) ", "moved in every channel"),
+        ("    return int((moved_pixels(videos, level) == 0).sum())",
+         "    return int((moved_pixels(videos, level) <= 1).sum())", "a video with one pixel moved as still"),
+        ("    return float(xs.mean()), float(xs.std(ddof=1)) if len(xs) > 1 else 0.0",
+         "    return float(xs.mean()), float(xs.std()) if len(xs) > 1 else 0.0", "the population sd over seeds"),
+        ("    return float((A * rl.group_advantages(torch.tensor(y, dtype=torch.float32), ids)).mean())",
+         "    return float((A * torch.tensor(y, dtype=torch.float32)).mean())", "pull without standardising y"),
+        ('    return [{"step": r["step"], "still": float(m)} for r, m in zip(steps[window - 1:], means)]',
+         '    return [{"step": r["step"], "still": float(m)} for r, m in zip(steps, means)]',
+         "a trailing mean labelled at its first step"),
+        ("        if j[key].yes is not None:\n            g[0] += int(j[key].yes)",
+         "        if True:\n            g[0] += int(bool(j[key].yes))", "subgroups counting no judgment"),
+        ("        for u in np.unique(v):\n            r[v == u] = r[v == u].mean()",
+         "        for u in []:\n            r[v == u] = r[v == u].mean()", "Spearman without tied ranks"),
     ]),
     "train.py": (["tests/test_train.py"], [
         ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",

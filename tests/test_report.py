@@ -4,6 +4,7 @@ import os
 
 import numpy as np
 import pytest
+import torch
 
 import bench
 import report
@@ -23,6 +24,7 @@ def test_denominators_count_discarded_judgments():
     assert seed0["valid"] == {"task": 2, "agent": 2, "consistency": 2, "avg": 1, "solved": 1, "by_agent": 1}
     assert seed0["failures"] == {"task": 1, "agent": 1, "consistency": 1, "avg": 2, "solved": 2, "by_agent": 2}
     assert seed0["task"] == 0.5 and seed0["agent"] == 1.0 and seed0["consistency"] == 0.5
+    assert seed0["avg"] == pytest.approx(2 / 3)          # Tab. 1's Avg: the mean of the three columns
     seed1 = bench.score_table([_j(True, False, True), _j(True, True, True)])
     # solved = task and consistency both yes: a task solved by an implausible video does not count
     assert bench.score_table([_j(True, True, False), _j(True, False, True), _j(False, True, True)])["solved"] == 1 / 3
@@ -65,12 +67,22 @@ def test_mean_and_spread_over_seeds():
     assert bench.fmt([0.1, 0.3]) == "0.200 ± 0.141"
 
 
+def test_pull_is_a_against_y_standardised_within_its_group():
+    """bench.pull (the rl step's still_push): mean of A times y standardised within each group, 0 where y is
+    constant in its group, so it does not depend on y's scale."""
+    A, ids = torch.tensor([1.0, 0.0, 0.5, -0.5]), torch.tensor([0, 0, 1, 1])
+    assert bench.pull(A, [3.0, 1.0, 5.0, 5.0], ids) == pytest.approx((1.0 * 1 + 0.0 * -1 + 0 + 0) / 4)
+    assert bench.pull(A, [30.0, 10.0, 5.0, 5.0], ids) == pytest.approx(0.25)
+
+
 def test_subgroup_scores_for_fig7():
     import world
     pairs = world.bench_pairs(0.3)[:40]
     judgments = [_j(i % 2 == 0, i % 3 == 0, True) for i in range(40)]
     fam, types = bench.family_scores(pairs, judgments), bench.agent_type_scores(pairs, judgments)
     assert sum(v for _, v in fam.values()) == 40 and set(fam) <= set(world.FAMILIES)
+    no_judgment = [_j(None, True, True)] + judgments[1:]           # a video the task judge could not judge
+    assert sum(v for _, v in bench.family_scores(pairs, no_judgment).values()) == 39
     assert set(types) <= {"sprite", "first-person view"} and sum(v for _, v in types.values()) == 40
     fpv = [p for p in pairs if p.task.agent == world.FIRST_PERSON]
     assert types.get("first-person view", [0, 0])[1] == len(fpv)
