@@ -516,31 +516,34 @@ def test_per_step_r_distill_trains_flow_grpo_on_per_step_advantages(tiny_ckpt, t
     assert per["loss"] != traj["loss"] and any(g.abs().sum() > 0 for g in grads)
 
 
+def _spy(monkeypatch, owner, name: str) -> list:
+    """Wrap owner.name so each call is recorded as (args, kwargs, result) in the returned list, then returned as is."""
+    fn, calls = getattr(owner, name), []
+
+    def spy(*a, **k):
+        calls.append((a, k, fn(*a, **k)))
+        return calls[-1][2]
+
+    monkeypatch.setattr(owner, name, spy)
+    return calls
+
+
 def test_rl_step_wires_eq9_into_eq10_with_the_lambdas_and_eq12_with_beta_d(tiny_ckpt, tmp_path, monkeypatch):
     """rl_step hands the advantages r_distill = the sum of distill_reward's per-step terms (Eq. 9) -- with
     --distill_reward per_step each transition's credit to go (App. A.3) -- under the --lambda_* weights (Eq. 10), and
     its loss is L_RL + beta_d L_anchor (Eq. 12). Non-default weights, so a flag that does not arrive shows."""
-    seen, reward_fn, adv_fn = {}, train.distill.distill_reward, train.rl.advantages
-
-    def distill_reward(*a, **k):
-        seen.setdefault("terms", []).append(reward_fn(*a, **k))
-        return seen["terms"][-1]
-
-    def advantages(rewards, weights, *a):
-        seen.update(rewards=rewards, weights=weights)
-        return adv_fn(rewards, weights, *a)
-
-    monkeypatch.setattr(train.distill, "distill_reward", distill_reward)
-    monkeypatch.setattr(train.rl, "advantages", advantages)
+    rewards_of = _spy(monkeypatch, train.distill, "distill_reward")
+    advantages_of = _spy(monkeypatch, train.rl, "advantages")
     for mode in ("trajectory", "per_step"):
-        seen.clear()
+        rewards_of.clear()
         rec = _one_step(tiny_ckpt, tmp_path, trainer="flow-grpo", distill_reward=mode, lambda_distill=0.5,
                         lambda_cons=0.7, beta_d=0.3)[0]
-        terms = torch.cat(seen["terms"])                                          # (N, S), each -(dt) l <= 0
+        terms = torch.cat([out for _, _, out in rewards_of])                      # (N, S), each -(dt) l <= 0
+        (rewards, weights, *_), _, _ = advantages_of[-1]
         assert terms.shape == (8, train.train_steps(_args(tiny_ckpt, tmp_path))) and (terms < 0).all()
         expect = terms.sum(1) if mode == "trajectory" else train.distill.distill_reward_to_go(terms)
-        assert torch.equal(seen["rewards"]["distill"], expect), mode
-        assert seen["weights"] == {"task": 1.0, "distill": 0.5, "consistency": 0.7}
+        assert torch.equal(rewards["distill"], expect), mode
+        assert weights == {"task": 1.0, "distill": 0.5, "consistency": 0.7}
         assert rec["r_distill"] == pytest.approx(terms.sum(1).mean().item(), rel=1e-6)   # the log keeps Eq. 9's sum
         # the tiny base's velocities are small (L_anchor ~1e-8): a tolerance relative to the anchor's term
         assert rec["l_anchor"] > 0 and abs(rec["loss"] - (rec["l_rl"] + 0.3 * rec["l_anchor"])) < 1e-3 * rec["l_anchor"]
@@ -549,36 +552,20 @@ def test_rl_step_wires_eq9_into_eq10_with_the_lambdas_and_eq12_with_beta_d(tiny_
 def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tiny_ckpt, tmp_path, monkeypatch):
     """Fig. 5 (iii), --executor_update off: Eq. 3's states are the Demonstrator's (adapters off) under c_D, and the
     loss compares the Executor under c_E with the Demonstrator under that same c_D."""
-    seen, rollout_fn, loss_fn = {}, train.distill.rollout, train.distill.off_policy_loss
-
-    def rollout(model, x_0, c, steps, demonstrator=False):
-        seen["rollout"] = (c, demonstrator)
-        return rollout_fn(model, x_0, c, steps, demonstrator)
-
-    def off_policy_loss(model, traj, c_E, c_D, *a, **k):
-        seen["loss"] = (c_E, c_D)
-        return loss_fn(model, traj, c_E, c_D, *a, **k)
-
-    monkeypatch.setattr(train.distill, "rollout", rollout)
-    monkeypatch.setattr(train.distill, "off_policy_loss", off_policy_loss)
+    rollouts, losses = (_spy(monkeypatch, train.distill, n) for n in ("rollout", "off_policy_loss"))
     _one_step(tiny_ckpt, tmp_path, executor_update="off")
-    (c, demonstrator), (c_E, c_D) = seen["rollout"], seen["loss"]
-    assert demonstrator and c is c_D and not torch.equal(c_E["ids"], c_D["ids"])
+    ((_, _, c, _), kw, _), ((_, _, c_E, c_D, *_), _, _) = rollouts[-1], losses[-1]
+    assert kw["demonstrator"] and c is c_D and not torch.equal(c_E["ids"], c_D["ids"])
 
 
 def test_inner_epochs_update_again_on_the_same_rollouts(tiny_ckpt, tmp_path, monkeypatch):
     """--inner_epochs 2: two optimizer steps on one step's rollouts (sampled once)."""
-    calls, update_fn = [], train._update
-
-    def update(step, opt, params, parts, *a):
-        calls.append([p.ro for p in parts])
-        return update_fn(step, opt, params, parts, *a)
-
-    monkeypatch.setattr(train, "_update", update)
+    updates = _spy(monkeypatch, train, "_update")
     for k in (1, 2):
-        calls.clear()
+        updates.clear()
         _one_step(tiny_ckpt, tmp_path, trainer="flow-grpo", inner_epochs=k)
-        assert len(calls) == k and all(ro is first for ro, first in zip(calls[-1], calls[0]))
+        rollouts = [[p.ro for p in parts] for (_, _, _, parts, *_), _, _ in updates]
+        assert len(rollouts) == k and all(ro is first for ro, first in zip(rollouts[-1], rollouts[0]))
 
 
 def test_demonstrator_executor_reads_the_executors_own_weights_under_d(tiny_ckpt, tmp_path):
