@@ -173,6 +173,28 @@ def test_dmd_gradient_is_zero_when_fake_equals_real_and_points_from_fake_to_real
     assert loss.item() > 0 and all(p.grad is not None for p in models.lora_parameters(fake))
 
 
+class PointMass(nn.Module):
+    """The exact velocity of Eq. 2 for data that is one point x_star: v(x_t, t) = (x_star - x_t) / (1 - t), so its
+    clean estimate mu(x_t, t) = x_t + (1 - t) v is x_star at every state."""
+
+    def __init__(self, x_star):
+        super().__init__()
+        self.register_buffer("x_star", x_star)
+
+    def forward(self, x, t, c):
+        return (self.x_star - x) / flow._bcast(1 - t, x)
+
+
+def test_eq18_is_zero_for_the_exact_denoiser_and_positive_for_a_wrong_one():
+    """Eq. 18, || mu_fake(x_t, t) - x ||^2 with x_t ~ q_t(. | x): on samples x = x_star the point mass's exact
+    denoiser scores 0; the identity denoiser mu(x_t) = x_t (v = 0) scores the noise it leaves in."""
+    x_star = torch.randn(3, 2, 4, generator=torch.Generator().manual_seed(0))
+    exact = distill.dmd_fake_score_loss(PointMass(x_star), x_star, {}, torch.Generator().manual_seed(1))
+    still = distill.dmd_fake_score_loss(lambda x, t, c: torch.zeros_like(x), x_star, {},
+                                        torch.Generator().manual_seed(1))
+    assert exact.item() < 1e-10 and still.item() > 0.01
+
+
 def test_fake_score_starts_as_the_base_with_only_its_own_lora_trainable(lora_model):
     """make_fake_score copies the base, not the Executor: the Executor's adapters are folded away (B = 0)."""
     m, c_E, c_D, x0 = lora_model

@@ -69,6 +69,26 @@ def test_velocity_is_converted_once_at_the_boundary(ltx):
     assert np.array_equal(video[:, 0, ::2, ::2], f0)       # frame 0 is the given observation
 
 
+def test_ltx2_latents_are_normalised_as_diffusers_pipeline_normalises_them(ltx):
+    """LTX2Video._normalise against the LTX-2 pipeline's own (de)normalisation, per channel with the VAE's latent
+    mean and std. The tiny VAE's are 0 and 1, under which any order of the two passes: set them to other values."""
+    from diffusers import LTX2ImageToVideoPipeline as P
+    m, vae = ltx[0], ltx[0].vae
+    kept = vae.latents_mean.clone(), vae.latents_std.clone()
+    g = torch.Generator().manual_seed(0)
+    try:
+        vae.latents_mean.copy_(torch.randn(kept[0].shape, generator=g))
+        vae.latents_std.copy_(torch.rand(kept[1].shape, generator=g) + 0.5)
+        z, k = torch.randn(2, len(kept[0]), 2, 3, 3, generator=g), vae.config.scaling_factor
+        assert torch.allclose(m._normalise(z), P._normalize_latents(z, vae.latents_mean, vae.latents_std, k))
+        assert torch.allclose(m._normalise(z, inverse=True),
+                              P._denormalize_latents(z, vae.latents_mean, vae.latents_std, k))
+        assert not torch.allclose(m._normalise(z), z, atol=0.1)
+    finally:
+        vae.latents_mean.copy_(kept[0])
+        vae.latents_std.copy_(kept[1])
+
+
 def test_hunyuan15_velocity_and_first_frame_conditioning(hy):
     m, f0, c, _ = hy
     x = torch.randn(2, *m.latent_shape())

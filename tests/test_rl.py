@@ -122,6 +122,18 @@ def test_sde_sampler_keeps_the_ode_marginals():
         flow.sample_sde(v, x0, 10, noise_level=0.0)
 
 
+def test_sde_sampler_given_noises_samples_what_its_own_draws_sample():
+    """sample_sde(noises=...) (a multi-process run's slice of the batch's draws) is the sampler with those standard
+    normal draws: the same states and log-probs as drawing them from a generator in the same order."""
+    v = _gaussian_velocity(1.0, 0.5)
+    x0 = torch.randn(5, 3, generator=torch.Generator().manual_seed(0))
+    xs, ts, lp = flow.sample_sde(v, x0, 4, noise_level=0.7, generator=torch.Generator().manual_seed(3))
+    g = torch.Generator().manual_seed(3)
+    noises = torch.stack([torch.randn(x0.shape, generator=g) for _ in range(4)])
+    xs2, ts2, lp2 = flow.sample_sde(v, x0, 4, noise_level=0.7, noises=noises)
+    assert torch.allclose(xs2, xs, atol=1e-6) and torch.allclose(lp2, lp, atol=1e-5) and torch.equal(ts2, ts)
+
+
 # ---- ratios, clip, weighting, KL --------------------------------------------------------------------------------------
 
 class Tiny(torch.nn.Module):
@@ -292,19 +304,23 @@ def test_gaussian_kl_closed_form():
     assert torch.allclose(rl.gaussian_kl(mu, mu2, s), direct, atol=1e-6)
 
 
-def test_flow_grpo_kl_is_zero_with_adapters_at_init_and_grows_after():
+@pytest.mark.parametrize("name", ["flow-grpo", "awm"])
+def test_kl_to_the_reference_is_zero_at_init_grows_after_and_is_added_to_the_loss(name):
+    """Flow-GRPO's closed-form KL and AWM's velocity-space KL to the base: zero while the LoRA is at init, positive
+    once it moved, and a penalty -- with zero advantages (no policy-gradient term) the loss is + kl_beta KL."""
     torch.manual_seed(0)
     model = Tiny()
     models.add_lora(model, 2, 4.0)
     ro = _tiny_rollouts(model)
-    cfg = rl.RLConfig(kl_beta=1.0)
-    _, info = rl.flow_grpo(model, ro, torch.zeros(8), cfg)
+    cfg = rl.RLConfig(kl_beta=0.5)
+    _, info = rl.OBJECTIVES[name](model, ro, torch.zeros(8), cfg)
     assert abs(info["kl"]) < 1e-10
     with torch.no_grad():
         for p in models.lora_parameters(model):
             p.add_(0.3)
-    _, info = rl.flow_grpo(model, ro, torch.zeros(8), cfg)
-    assert info["kl"] > 1e-4
+    ro.draws.clear()
+    loss, info = rl.OBJECTIVES[name](model, ro, torch.zeros(8), cfg)
+    assert info["kl"] > 1e-4 and loss.item() == pytest.approx(0.5 * info["kl"], rel=1e-5)
 
 
 def test_objectives_need_the_right_rollouts():
