@@ -27,7 +27,7 @@ SCORES = [f"tests/test_report.py::test_{name}" for name in (
     f"tests/test_scripts.py::test_{name}" for name in (
         "compare_runs_on_fake_runs", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws")]
 
-# file -> (the test files to run, [(old, new, what it breaks)])
+# file (and what part of it) -> (the test files to run, [(old, new, what it breaks)])
 MUTANTS = {
     "flow.py": (UNIT, [
         ("    mu = x + dt * (v - sb.pow(2) * (x - tb * v) / (2 * (1 - tb)))",
@@ -44,6 +44,12 @@ MUTANTS = {
         ("        return v_u + scale * (v_cond(x, t) - v_u)",
          "        return v_cond(x, t) + scale * (v_cond(x, t) - v_u)",
          "guidance from the conditional field"),
+        ("    return (1 - t) * x_0 + t * x_1", "    return t * x_0 + (1 - t) * x_1", "Eq. 2's path run backwards"),
+        ("    err = (v_theta(x_t, t) - (x_1 - x_0)).pow(2)", "    err = (v_theta(x_t, t) - (x_0 - x_1)).pow(2)",
+         "the flow-matching target's sign"),
+        ("    t = t.clamp(min=t_min)\n", "    t = t.clamp(min=t_min / 10)\n", "sigma_t clamped below the first step"),
+        ("            x_next = mu + _bcast(s, x) * noises[k]", "            x_next = mu + noises[k]",
+         "given noises not scaled by the step's std"),
     ]),
     "distill.py": (UNIT, [
         ("    return torch.cat([to_go[:, 1:], torch.zeros_like(to_go[:, :1])], 1)", "    return to_go",
@@ -61,6 +67,27 @@ MUTANTS = {
          "the motion weight's clean estimate"),
         ("    return (model if teacher is None else teacher)(x_t, t, c_D)", "    return model(x_t, t, c_D)",
          "Alg. 2's teacher ignored"),
+        ("    return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()",
+         "    return discrepancy(model, x_t, t, c_D, c_D, teacher, motion_weight).mean()", "Eq. 3's student under c_D"),
+        ("    x_t, t = xs[k, rows].detach(), ts[k]", "    x_t, t = xs[k, rows], ts[k]", "Eq. 11 without sg(x_t)"),
+        ("        v_D = teacher_velocity(model, xs[k], t, c_D, teacher) if teacher_v is None else teacher_v[k]",
+         "        v_D = teacher_velocity(model, xs[k], t, c_E, teacher) if teacher_v is None else teacher_v[k]",
+         "Eq. 9's Demonstrator under c_E"),
+        ("        t = ts[k].expand(B)\n        v_E", "        t = ts[k + 1].expand(B)\n        v_E",
+         "Eq. 9's terms at the step's end"),
+        ("    with torch.no_grad(), (models.adapters_disabled(model) if teacher is None else contextlib.nullcontext"
+         "()):",
+         "    with torch.no_grad():", "the Demonstrator with the Executor's LoRA on"),
+        ("        ks = ks[(t_grid >= window[0] - 1e-6) & (t_grid < window[1] - 1e-6)]",
+         "        ks = ks[(t_grid >= window[0] - 1e-6)]", "a state window without its upper end"),
+        ("        x_t = flow.interpolate(eps, x.detach(), t) ", "        x_t = flow.interpolate(x.detach(), eps, t) ",
+         "DMD's re-noising in the other convention"),
+        ("        mu_fake = _denoise(fake, x_t, t, c_E)", "        mu_fake = _denoise(fake, x_t, t, c_D)",
+         "DMD's fake score under c_D"),
+        ("    return (_denoise(fake, x_t, t, c_E) - x.detach()).pow(2).mean()",
+         "    return (_denoise(fake, x_t, t, c_E) - x_t).pow(2).mean()", "Eq. 18's target the noisy state"),
+        ('        p.requires_grad_("lora_" in n)', "        p.requires_grad_(True)",
+         "the fake score training the base"),
     ]),
     "rl.py": (UNIT, [
         ("        A[m] = (x - x.mean()) / (x.std(unbiased=False) + eps)",
@@ -88,6 +115,23 @@ MUTANTS = {
          "    return l_rl if (l_anchor is None or beta_d == 0) else l_rl + l_anchor", "Eq. 12 without beta_d"),
         ("    terms = [weights[k] * r for k, r in rewards.items() if weights.get(k, 0) != 0]",
          "    terms = [r for k, r in rewards.items() if weights.get(k, 0) != 0]", "Eq. 10 without its lambdas"),
+        ("        m = (groups == g) & ok", "        m = groups == g", "a NaN reward entering its group's mean"),
+        ("    ratio = (lp - ro.log_probs).exp()", "    ratio = (ro.log_probs - lp).exp()",
+         "Flow-GRPO's ratio inverted"),
+        ("        kl = torch.stack(kls).mean()\n        loss = loss + cfg.kl_beta * kl",
+         "        kl = torch.stack(kls).mean()\n        loss = loss - cfg.kl_beta * kl", "Flow-GRPO's KL rewarded"),
+        ("        kl = _sq(v - _reference(model, x_t, t, c)).mean()\n        loss = loss + cfg.kl_beta * kl",
+         "        kl = _sq(v - _reference(model, x_t, t, c)).mean()\n        loss = loss - cfg.kl_beta * kl",
+         "AWM's KL rewarded"),
+        ("    with torch.no_grad(), models.adapters_disabled(model):\n        return model(x, t, c)",
+         "    with torch.no_grad():\n        return model(x, t, c)", "the reference policy = the current one"),
+        ('        ro.draws["awm_old"] = logp.detach()\n    old = ro.draws["awm_old"]',
+         '        pass\n    old = logp.detach()', "AWM's theta_old moving with theta"),
+        ('        ro.draws["renoise"] = (flow.interpolate(eps, x1, t), t, x1 - eps)',
+         '        ro.draws["renoise"] = (flow.interpolate(eps, x1, t), t, eps - x1)', "AWM's target's sign"),
+        ("    r = (0.5 + 0.5 * (A / 5.0).clamp(-1, 1)).repeat(n_t)",
+         "    r = (0.5 - 0.5 * (A / 5.0).clamp(-1, 1)).repeat(n_t)",
+         "NFT's optimality reversed"),
     ]),
     "models.py": (JUDGES, [
         ("self.base, self.scale, self.enabled = base, alpha / rank, True",
@@ -192,6 +236,24 @@ MUTANTS = {
         ("    for _ in range(args.inner_epochs):", "    for _ in range(1):", "--inner_epochs ignored"),
         ("        return rl.final_loss(l_rl, l_base, args.beta_phi), {}",
          "        return rl.final_loss(l_rl, l_base, 0.0), {}", "--beta_phi ignored"),
+        ("            e.lerp_(p, 1 - decay)", "            e.lerp_(p, decay)", "the EMA's weights swapped"),
+        ("                p.copy_(w)", "                pass", "the averaged weights left in training"),
+        ("            if args.alternate > 0 and step % args.alternate == 0:",
+         "            if args.alternate > 0 and step % args.alternate == 1:", "Alg. 2's rounds on the wrong steps"),
+        ('        if ema is not None and not rec.get("demo_round") and ',
+         "        if ema is not None and ", "the Executor's EMA updated in phi's rounds"),
+    ]),
+    "models.py (real backends)": (["tests/test_real_backends.py"], [
+        ("        return z * s / k + m if inverse else (z - m) * k / s",
+         "        return (z - m) * k / s if inverse else z * s / k + m", "LTX-2's latent normalisation inverted"),
+        ("        sigma = (1 - t).float() * self.transformer", "        sigma = t.float() * self.transformer",
+         "LTX-2's sigma = t"),
+        ("        per_token[:, :h * w] = 0 ", "        per_token[:, :h * w] = 1 ", "LTX-2's first frame as noise"),
+        ("[:, :, 1:]   # drop the first frame", "[:, :, :-1]   # drop the first frame",
+         "LTX-2 dropping the last frame"),
+        ("        return -v_sigma ", "        return v_sigma ", "LTX-2's velocity in sigma's direction"),
+        ("        mask[:, :, 0] = 1\n", "        mask[:, :, :] = 1\n", "HunyuanVideo-1.5's mask on every frame"),
+        ("        sigma = (1 - t).float()  ", "        sigma = t.float()  ", "HunyuanVideo-1.5's sigma = t"),
     ]),
 }
 
@@ -199,19 +261,22 @@ MUTANTS = {
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", default="", help="comma-separated files of MUTANTS, e.g. rl.py,distill.py")
+    p.add_argument("--what", default="", help="only the changes whose description contains this, e.g. \"Eq. 9\"")
     args = p.parse_args(argv)
     only = [f for f in args.only.split(",") if f]
-    unknown = [f for f in only if f not in MUTANTS]
+    unknown = [f for f in only if f not in {key.split()[0] for key in MUTANTS}]
     if unknown:
-        p.error(f"--only: no changes listed for {', '.join(unknown)}; choose from {', '.join(MUTANTS)}")
+        choices = ", ".join(dict.fromkeys(key.split()[0] for key in MUTANTS))
+        p.error(f"--only: no changes listed for {', '.join(unknown)}; choose from {choices}")
     files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
-    todo = [(f, *m) for f in (only or MUTANTS) for m in MUTANTS[f][1]]
+    todo = [(key.split()[0], *m, tests) for key, (tests, ms) in MUTANTS.items() if not only or key.split()[0] in only
+            for m in ms if args.what in m[2]]
     bad, t0 = [], time.time()
     with tempfile.TemporaryDirectory() as tree:
         for f in files:
             os.makedirs(os.path.join(tree, os.path.dirname(f)), exist_ok=True)
             shutil.copy2(os.path.join(ROOT, f), os.path.join(tree, f))
-        for i, (f, old, new, what) in enumerate(todo, 1):
+        for i, (f, old, new, what, tests) in enumerate(todo, 1):
             path = os.path.join(tree, f)
             with open(path) as fh:
                 src = fh.read()
@@ -221,7 +286,7 @@ def main(argv=None) -> int:
                 with open(path, "w") as fh:
                     fh.write(src.replace(old, new))
                 r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
-                                    *MUTANTS[f][0]], cwd=tree, capture_output=True, text=True)
+                                    *tests], cwd=tree, capture_output=True, text=True)
                 with open(path, "w") as fh:
                     fh.write(src)
                 verdict = "failed a test" if r.returncode == 1 else ("SURVIVED" if r.returncode == 0 else
