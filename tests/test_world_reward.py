@@ -60,6 +60,19 @@ def test_motion_table_is_simulate_and_plan_is_valid_for_every_motion():
             assert 0 < valid.sum() <= len(plans)
 
 
+def test_d_says_the_motion_the_simulator_renders_and_a_valid_plan_never_overlaps():
+    """describe's words against the rendered frames (+x is right, +y is down: rows grow downwards), and
+    plan_is_valid's 3 px between centres: 3x3 sprites with centres 2 px apart would share a column."""
+    scene = Scene([Sprite("red", "square", 5, 8), Sprite("blue", "circle", 12, 8)])
+    for plan, d, end in [(Plan(0, 1, -2, 2), "red square moves right 1 up 2 for 2 frames then stops", (7, 4)),
+                         (Plan(0, -1, 1, 1), "red square moves left 1 down 1 for 1 frame then stops", (4, 9))]:
+        assert world.describe(scene, plan) == d
+        red = [s for s in world.read_sprites(_video(scene, plan)[-1]) if s.colour == "red"]
+        assert [(s.x, s.y) for s in red] == [end]
+    # red moving right 1 a frame towards blue (7 px away): 4 frames leave 3 px, 5 frames leave 2 px
+    assert world.plan_is_valid(scene, Plan(0, 1, 0, 4)) and not world.plan_is_valid(scene, Plan(0, 1, 0, 5))
+
+
 def test_sft_labels_are_short_tasks_the_video_solves_or_trivial_moves():
     """The +SFT baseline's labeller: a derived task must be one the judge says the labelled video solves."""
     rng = np.random.default_rng(0)
