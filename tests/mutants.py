@@ -1,9 +1,10 @@
 """Can the tests fail? Change one line of an equation or its wiring at a time, run the tests that guard that file,
 and report each change the tests let through ("survived"). Not part of the suite (it runs the suite's files again
-and again: about 25 minutes on two cores, most of it train.py's); run it after changing a formula or its tests:
+and again: 30 minutes on two cores, most of it train.py's); run it after changing a formula or its tests:
 
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
+    python tests/mutants.py --what "Eq. 9"  # the changes whose description says this
 
 Each change is (old line(s), new line(s), what it breaks): a sign, a factor, an axis, a threshold, a flag that does
 not arrive. The changes are made in a copy of the tracked files, never here. Exit status 1 if any change survives
