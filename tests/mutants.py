@@ -27,6 +27,9 @@ SCORES = [f"tests/test_report.py::test_{name}" for name in (
     "mean_and_spread_over_seeds", "pull_is_a_against_y_standardised_within_its_group", "subgroup_scores_for_fig7")] + [
     f"tests/test_scripts.py::test_{name}" for name in (
         "compare_runs_on_fake_runs", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws")]
+REPORT = [f"tests/test_report.py::test_{name}" for name in (
+    "denominators_count_discarded_judgments", "a_finished_run_is_reused_only_for_the_same_command_and_base",
+    "each_experiment_sets_what_its_figure_says_it_does")]
 
 # file (and what part of it) -> (the test files to run, [(old, new, what it breaks)])
 MUTANTS = {
@@ -228,6 +231,22 @@ MUTANTS = {
          "        if True:\n            g[0] += int(bool(j[key].yes))", "subgroups counting no judgment"),
         ("        for u in np.unique(v):\n            r[v == u] = r[v == u].mean()",
          "        for u in []:\n            r[v == u] = r[v == u].mean()", "Spearman without tied ranks"),
+    ]),
+    "report.py": (REPORT, [
+        ('    score = succ / valid if valid else float("nan")', '    score = succ / n if n else float("nan")',
+         "Tab. 4's score over every video, not the judged ones"),
+        ("{100 * (n - valid) / max(n, 1):.1f}%", "{100 * valid / max(n, 1):.1f}%",
+         "Tab. 4's failure rate as the valid share"),
+        ('    "no_anchor": ("rl", ["--beta_d", "0", "--lambda_distill", "0"]),',
+         '    "no_anchor": ("rl", ["--beta_d", "0"]),', "Fig. 5 (i) keeping r_distill"),
+        ('    "teacher_rl": ("rl", ["--alternate", "2", "--executor_update", "off"]),',
+         '    "teacher_rl": ("rl", ["--alternate", "2"]),', "Fig. 5 (iii) as Alg. 2"),
+        ('BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}',
+         'BETAS = {"beta_0": 0.0, "beta_0.01": 0.1, "beta_0.1": 0.01, "wmsd": 1.0}', "Fig. 4 right's betas swapped"),
+        ('ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}',
+         'ERRORS = {"err_0": 0.0, "wmsd": 0.5, "err_0.5": DEFAULT_ERROR_RATE}', "the error rates swapped"),
+        ('    return rec["cmd"] == cmd and rec.get("base") == base', '    return rec["cmd"] == cmd',
+         "a run from another base reused"),
     ]),
     "train.py": (["tests/test_train.py"], [
         ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",

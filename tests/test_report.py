@@ -9,6 +9,7 @@ import torch
 import bench
 import report
 import reward
+import train
 from conftest import run
 
 J = reward.Judgment
@@ -126,6 +127,24 @@ def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
     assert not report.finished_run(d, "rl", ["--seed", "0"], "bbbb")                  # a rebuilt base
     (tmp_path / "ck.pt").write_bytes(b"x")
     assert bench.file_digest(str(tmp_path / "ck.pt")) == "2d711642b726b044"       # sha256(b"x")[:16]
+
+
+def test_each_experiment_sets_what_its_figure_says_it_does():
+    """EXPERIMENTS through train.py's own parser: Fig. 5's four runs select the settings fig5_setting names, Fig. 4
+    right's beta_d and the error-rate figure's rates are the flags' values, Fig. 8's ablation differs from WMSD in
+    r_cons's weight alone, and the distill run trains the SFT executors Tab. 1 loads."""
+    def parse(name):
+        stage, flags = report.EXPERIMENTS[name]
+        return train.parse_args(["--stage", stage, *flags])
+    settings = {"no_anchor": "RL from the judges alone", "wmsd": "WMSD", "alternate": "WMSD, alternating (Alg. 2)",
+                "teacher_rl": "off-policy distillation + RL on the teacher"}
+    assert set(report.FIG5) == set(settings)
+    assert all(train.fig5_setting(parse(name)) == label for name, label in settings.items())
+    assert all(parse(name).beta_d == b for name, b in report.BETAS.items())
+    assert all(parse(name).error_rate == e for name, e in report.ERRORS.items())
+    wmsd, no_cons = vars(parse("wmsd")), vars(parse("no_cons"))
+    assert [k for k in wmsd if wmsd[k] != no_cons[k]] == ["lambda_cons"] and no_cons["lambda_cons"] == 0
+    assert {"sft", "paired"} <= set(parse("distill").variant.split(","))
 
 
 def test_report_bad_input(tmp_path):
