@@ -558,6 +558,47 @@ def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tin
     assert kw["demonstrator"] and c is c_D and not torch.equal(c_E["ids"], c_D["ids"])
 
 
+def test_distill_variants_train_on_the_states_and_videos_their_objective_names(tiny_ckpt, tmp_path, monkeypatch):
+    """One step of each --stage distill variant: off (Eq. 3) on the Demonstrator's rollout (adapters off) under c_D,
+    on (Eq. 5) and dmd (App. A.2.1, both the generator and the fake score) on the Executor's own under c_E, with c_E
+    holding T and c_D the toy VLM's D; paired fits the correct executions of T, sft the sft_batch's videos under
+    their own labels. Pairs whose D is wrong, so D and the correct plan differ."""
+    args = _args(tiny_ckpt, tmp_path, stage="distill", steps=1, batch=2)
+    res = {k: 0.0 for k in train.EVAL_KEYS}
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: res)
+    conds = _spy(monkeypatch, train.models.ToyVideoFlow, "condition")
+    rollouts, fits, sft = (_spy(monkeypatch, owner, n) for owner, n in
+                           ((train.distill, "rollout"), (train, "video_loss"), (train.world, "sft_batch")))
+    losses = {n: _spy(monkeypatch, train.distill, n) for n in
+              ("off_policy_loss", "on_policy_loss", "dmd_generator_loss", "dmd_fake_score_loss")}
+    pairs = [p for p in train.world.make_pairs(40, seed=0, error_rate=0.5) if p.error][:4]
+    texts = lambda c: next(a[2] for a, _, out in conds if out is c)  # noqa: E731
+    for variant in ("off", "on", "dmd", "paired", "sft"):
+        for calls in (conds, rollouts, fits, sft, *losses.values()):
+            calls.clear()
+        with open(tmp_path / "log.jsonl", "w") as logf:
+            train.distill_variant(args, variant, pairs, logf, res)
+        if variant in ("off", "on", "dmd"):
+            (_, _, c, *demo), _, traj = rollouts[-1]
+            name = {"off": "off_policy_loss", "on": "on_policy_loss", "dmd": "dmd_generator_loss"}[variant]
+            (_, *a), _, _ = losses[name][-1]
+            c_E, c_D = a[2:4] if variant == "dmd" else a[1:3]            # after (fake, x) or (trajectory)
+            assert all(t.startswith("[") for t in texts(c_E)) and set(texts(c_D)) <= {p.d_vlm for p in pairs}
+            assert (c is c_D and demo[1:] == [True]) if variant == "off" else (c is c_E and demo[1:] == [])
+        if variant in ("off", "on"):
+            assert losses[name][-1][0][1] is traj
+        if variant == "dmd":
+            assert losses["dmd_fake_score_loss"][-1][0][2] is c_E
+        if variant == "paired":
+            (_, videos, captions, _), _, _ = fits[-1]
+            for v, t in zip(videos, captions):
+                p = next(p for p in pairs if p.task.text == t and np.array_equal(p.frame0, v[0]))
+                assert np.array_equal(v, train.world.render(p.scene, train.world.simulate(p.scene, p.plan_oracle)))
+        if variant == "sft":
+            (_, videos, captions, _), _, _ = fits[-1]
+            assert videos is sft[-1][2][0] and captions is sft[-1][2][1]
+
+
 def test_inner_epochs_update_again_on_the_same_rollouts(tiny_ckpt, tmp_path, monkeypatch):
     """--inner_epochs 2: two optimizer steps on one step's rollouts (sampled once)."""
     updates = _spy(monkeypatch, train, "_update")
