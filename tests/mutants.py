@@ -1,6 +1,6 @@
 """Can the tests fail? Change one line of an equation or its wiring at a time, run the tests that guard that file,
 and report each change the tests let through ("survived"). Not part of the suite (it runs the suite's files again
-and again: 30 minutes on two cores, most of it train.py's); run it after changing a formula or its tests:
+and again: about 43 minutes on two cores, most of it train.py's); run it after changing a formula or its tests:
 
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
