@@ -316,12 +316,13 @@ def main(argv=None) -> int:
     p.add_argument("--what", default="", help="only the changes whose description contains this, e.g. \"Eq. 9\"")
     args = p.parse_args(argv)
     only = [f for f in args.only.split(",") if f]
-    unknown = [f for f in only if f not in {key.split()[0] for key in MUTANTS}]
+    file_of = {key: key.split()[0] for key in MUTANTS}          # "models.py (real backends)" -> models.py
+    unknown = [f for f in only if f not in file_of.values()]
     if unknown:
-        choices = ", ".join(dict.fromkeys(key.split()[0] for key in MUTANTS))
+        choices = ", ".join(dict.fromkeys(file_of.values()))
         p.error(f"--only: no changes listed for {', '.join(unknown)}; choose from {choices}")
     files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
-    todo = [(key.split()[0], *m, tests) for key, (tests, ms) in MUTANTS.items() if not only or key.split()[0] in only
+    todo = [(file_of[key], *m, tests) for key, (tests, ms) in MUTANTS.items() if not only or file_of[key] in only
             for m in ms if args.what in m[2]]
     bad, t0 = [], time.time()
     with tempfile.TemporaryDirectory() as tree:
