@@ -26,6 +26,8 @@ def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
     assert min(fams.values()) >= 40, fams
     keys = world.bench_scene_keys()
     assert all(world.scene_key(p.scene) not in keys for p in world.train_pairs(50, seed=1, error_rate=0.3))
+    # drawn from the bench's own seed, training scenes would be the bench's but for the exclusion
+    assert not keys & {world.scene_key(p.scene) for p in world.train_pairs(20, world.BENCH_SEED, error_rate=0.0)}
     videos, captions = world.pretraining_batch(np.random.default_rng(0), 64, exclude=keys)
     assert videos.shape == (64, world.F, world.H, world.W, 3)
 
@@ -47,6 +49,22 @@ def test_error_rates_are_laid_over_one_set_of_pairs():
     assert wrong(0.0) == set() and wrong(0.3) and wrong(0.3) <= wrong(0.7)
 
 
+def test_random_scenes_have_sprites_in_view_a_pixel_apart_that_read_back():
+    """random_scene's docstring: 2-4 sprites of distinct colours, fully in view, at least one pixel apart -- 3x3
+    sprites with centres 4 px apart (Chebyshev), not 3, where they would touch -- and read_sprites finds each."""
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        scene = world.random_scene(rng)
+        xy = np.array([[s.x, s.y] for s in scene.sprites])
+        assert 2 <= len(xy) <= 4 and len({s.colour for s in scene.sprites}) == len(xy)
+        assert ((xy >= 1) & (xy <= world.W - 2)).all()
+        gaps = np.abs(xy[:, None] - xy[None]).max(-1) + 99 * np.eye(len(xy), dtype=int)
+        assert gaps.min() >= 4, xy
+        frame0 = world.render(scene, world.simulate(scene, Plan(None)))[0]
+        assert sorted((s.colour, s.x, s.y) for s in world.read_sprites(frame0)) == sorted(
+            (s.colour, s.x, s.y) for s in scene.sprites)
+
+
 def test_motion_table_is_simulate_and_plan_is_valid_for_every_motion():
     """The planner's vectorised table (world.motion_table) agrees with the one-plan functions it stands in for."""
     rng = np.random.default_rng(0)
@@ -58,6 +76,33 @@ def test_motion_table_is_simulate_and_plan_is_valid_for_every_motion():
             assert all((pos[i] == world.simulate(scene, p)).all() for i, p in enumerate(plans))
             assert valid.tolist() == [world.plan_is_valid(scene, p) for p in plans]
             assert 0 < valid.sum() <= len(plans)
+
+
+def test_solutions_stop_when_they_first_solve_their_task_and_the_vlm_describes_the_soonest():
+    """world.solutions as its docstring says, checked on simulate()'s frames: every plan is valid and solves its task
+    at its last moving frame k, not at k - 1; a task already solved at frame 0 has none; "level with" moves only
+    vertically. No task is relative to its own agent. canonical_solution, the plan the toy VLM describes, arrives
+    soonest, then moves along fewer axes."""
+    rng, counted = np.random.default_rng(3), {"solved at frame 0": 0, "level_with plans": 0, "plans": 0}
+    for _ in range(15):
+        scene = world.random_scene(rng)
+        frame0_pos = world.simulate(scene, Plan(None))[0]
+        for task in world.candidate_tasks(scene):
+            assert task.agent != task.target
+            sols = world.solutions(scene, task)
+            if world._margins(scene, task, frame0_pos) >= 0:
+                assert sols == []
+                counted["solved at frame 0"] += 1
+            for p in sols:
+                m = world._margins(scene, task, world.simulate(scene, p))      # (F,): the margin at each frame
+                assert world.plan_is_valid(scene, p) and m[p.k] >= 0 > m[p.k - 1], (task, p, m)
+                assert task.kind != "level_with" or p.vx == 0, (task, p)
+                counted["level_with plans"] += task.kind == "level_with"
+                counted["plans"] += 1
+            if sols:
+                best = world.canonical_solution(sols)
+                assert (best.k, abs(best.vx) + abs(best.vy)) == min((p.k, abs(p.vx) + abs(p.vy)) for p in sols)
+    assert min(counted.values()) > 0, counted
 
 
 def test_d_says_the_motion_the_simulator_renders_and_a_valid_plan_never_overlaps():
