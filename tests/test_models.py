@@ -87,6 +87,9 @@ def test_lora_starts_equal_to_base_and_adapters_off_is_the_base_after_training(c
         assert torch.allclose(merged(x, t, c), model(x, t, c), atol=1e-5)
     if embeddings:   # the words' rows moved
         assert not torch.equal(merged.text.emb.weight, model.text.emb.base.weight)
+    if convs:        # every convolution's adapter is in the forward pass: the step moved its B
+        assert all(m.lora_B.abs().sum() > 0 for m in model.modules()
+                   if isinstance(m, models.LoRA) and isinstance(m.base, torch.nn.Conv2d))
 
 
 def test_embedding_lora_rows_are_table_plus_code_times_basis_and_the_padding_row_gets_no_gradient():
@@ -167,19 +170,33 @@ def test_unknown_backend_is_a_clear_error():
         models.make_model("nope")
 
 
-def test_generate_is_deterministic_and_independent_of_batching(small, capsys):
+def test_generate_is_deterministic_and_independent_of_batching(capsys):
+    # the shipped base: a fresh model's zero output layer predicts frame 0 whatever the noise, so any noise would pass
+    base = models.load_checkpoint(None)[0].eval()
     rng = np.random.default_rng(1)
     scenes = [world.random_scene(rng) for _ in range(3)]
     frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
-    texts = ["nothing moves"] * 3
-    a = models.generate(small, frame0, texts, steps=3, seed=5)
+    texts = ["camera pans left 1 for 3 frames then stops"] * 3
+    a = models.generate(base, frame0, texts, steps=3, seed=5)
     assert capsys.readouterr().out == ""                 # one pass: no progress lines
-    b = models.generate(small, frame0, texts, steps=3, seed=5, batch=2)
+    assert not np.array_equal(models.generate(base, frame0, texts, steps=3, seed=6), a)   # the noise matters
+    capsys.readouterr()
+    b = models.generate(base, frame0, texts, steps=3, seed=5, batch=2)
     lines = capsys.readouterr().out.splitlines()          # a progress line after each of the two passes
     assert [line.split(",")[0].strip() for line in lines] == ["sampled 2/3 videos", "sampled 3/3 videos"]
     assert a.shape == (3, world.F, world.H, world.W, 3) and a.dtype == np.uint8
     assert np.array_equal(a, b)
     assert np.array_equal(a[:, 0], frame0)  # frame 0 is the condition, never generated
+
+
+def test_decode_is_encode_videos_inverse():
+    """The toy's pixel latents: encode_video maps frames 1.. of a uint8 video to [-1, 1], decode maps them back
+    and puts the first frame in front."""
+    rng = np.random.default_rng(0)
+    video = rng.integers(0, 256, (2, world.F, world.H, world.W, 3), dtype=np.uint8)
+    x = models.ToyVideoFlow.encode_video(video)
+    assert x.shape == (2, world.F - 1, 3, world.H, world.W) and x.min() >= -1 and x.max() <= 1
+    assert np.array_equal(models.ToyVideoFlow.decode(x, video[:, 0]), video)
 
 
 def test_generate_with_guidance_samples_the_guided_field_against_the_empty_caption():

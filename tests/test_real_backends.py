@@ -155,6 +155,10 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
     (tmp_path / "bad.pt").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
         models.load_lora(m, str(tmp_path / "bad.pt"))
+    # a file from another model: load_state_dict(strict=False) would skip its weights without a word
+    torch.save({"lora": {"blocks.99.lora_A.weight": torch.zeros(1)}, "meta": {}}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="1 LoRA weights have no place in this model"):
+        models.load_lora(m, str(tmp_path / "other.pt"))
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])

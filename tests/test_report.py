@@ -85,8 +85,11 @@ def test_subgroup_scores_for_fig7():
     no_judgment = [_j(None, True, True)] + judgments[1:]           # a video the task judge could not judge
     assert sum(v for _, v in bench.family_scores(pairs, no_judgment).values()) == 39
     assert set(types) <= {"sprite", "first-person view"} and sum(v for _, v in types.values()) == 40
-    fpv = [p for p in pairs if p.task.agent == world.FIRST_PERSON]
-    assert types.get("first-person view", [0, 0])[1] == len(fpv)
+    fpv = [i for i, p in enumerate(pairs) if p.task.agent == world.FIRST_PERSON]
+    assert types["first-person view"] == [sum(i % 3 == 0 for i in fpv), len(fpv)] and fpv   # the agent judgments
+    wrong = [i for i, p in enumerate(pairs) if p.error]    # the task score where the toy VLM's D is wrong
+    assert bench.vlm_error_scores(pairs, judgments)["D wrong"] == [sum(i % 2 == 0 for i in wrong), len(wrong)]
+    assert 0 < len(wrong) < 20
     assert fam["perception"][1] == len(fpv)   # perception tasks are the first-person ones
     kinds = bench.kind_scores(pairs, judgments)   # finer: each kind, edges by side, the same successes
     assert set(kinds) <= {"move_to", "level_with", "centre", *(f"edge ({e})" for e in world.EDGES)}
