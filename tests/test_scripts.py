@@ -105,6 +105,23 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     assert not g.exists()
 
 
+def test_each_bench_condition_prompts_with_its_own_text():
+    """bench.prompts_for: T, the toy VLM's D (the plan it describes, wrong where it erred), the error-free D (the
+    solution's), the empty prompt; the instruction forms rewrite those Ds."""
+    import bench
+    import world
+    pairs = world.bench_pairs(0.3)[:40]
+    assert any(p.error for p in pairs)
+    assert bench.prompts_for(pairs, "task") == [p.task.text for p in pairs]
+    assert bench.prompts_for(pairs, "vlm") == [world.describe(p.scene, p.plan_vlm) for p in pairs]
+    assert bench.prompts_for(pairs, "oracle") == [world.describe(p.scene, p.plan_oracle) for p in pairs]
+    assert bench.prompts_for(pairs, "empty") == [""] * len(pairs)
+    assert bench.prompts_for(pairs, "instruction") == [world.instruction_form(world.describe(p.scene, p.plan_vlm))
+                                                       for p in pairs]
+    assert bench.prompts_for(pairs, "oracle_instruction") == [
+        world.instruction_form(world.describe(p.scene, p.plan_oracle)) for p in pairs]
+
+
 def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
     import numpy as np
     from PIL import Image
@@ -121,6 +138,7 @@ def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
         res, videos, _ = bench.evaluate(model, cond, 3, seed=1, steps=2)
         assert np.array_equal(r["videos"], videos), cond
         assert sum(bool(j["task"].yes) for j in r["judgments"]) == res["successes"]["task"]
+        assert res["still"] == bench.still_videos(videos) / 3 and res["still"] > 0     # a share of the videos
     no_executor = bench.gallery(model, n=3, seed=1, steps=2)
     assert [r["label"] for r in no_executor][2:] == ["base given T"]    # no Executor row, and the base given T
     w, h = Image.open(tmp_path / "g.png").size
