@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 
 import numpy as np
 import pytest
@@ -51,6 +52,23 @@ def test_kill_9_then_resume_gives_the_uninterrupted_metrics(tiny_ckpt, tmp_path)
     a = torch.load(d / "state.pt", weights_only=True)["lora"]
     b = torch.load(tmp_path / "ref" / "state.pt", weights_only=True)["lora"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_resumed_alg2_run_brings_back_phi_with_the_executor(tiny_ckpt, tmp_path):
+    """--resume under --alternate 2: phi's LoRA and optimizer come back beside the Executor's, so 2 steps and then
+    --resume to 4 end where 4 steps do (steps 2 and 4 are phi's rounds; step 3's Executor learns from phi)."""
+    def state(name, steps, resume=False):
+        args = _args(tiny_ckpt, tmp_path / name, steps=steps, alternate=2)
+        args.resume = resume
+        train.rl_stage(args)
+        return torch.load(tmp_path / name / "state.pt", weights_only=True)
+
+    whole = state("whole", 4)
+    state("halves", 2)
+    halves = state("halves", 4, resume=True)
+    for key in ("lora", "demo_lora"):
+        assert whole[key].keys() == halves[key].keys() and whole[key]
+        assert all(torch.equal(whole[key][k], halves[key][k]) for k in whole[key]), key
 
 
 def test_two_processes_make_the_one_process_update(tiny_ckpt, tmp_path):
@@ -259,6 +277,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                               "--state_window", "0.5,1"], capsys)
     assert "--state_window '' (now '0.5,1')" in err, err
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume").returncode == 0
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume"], capsys)
+    assert "already reached step 2 of --steps 2" in err       # a finished run: nothing to resume
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
@@ -577,7 +597,8 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
         for calls in (conds, rollouts, fits, sft, *losses.values()):
             calls.clear()
         with open(tmp_path / "log.jsonl", "w") as logf:
-            train.distill_variant(args, variant, pairs, logf, res)
+            _, evals = train.distill_variant(args, variant, pairs, logf, res)
+        assert [e["step"] for e in evals] == [0, 1]       # the base's, and the last step's (not on --eval_every 10)
         if variant in ("off", "on", "dmd"):
             (_, _, c, *demo), _, traj = rollouts[-1]
             name = {"off": "off_policy_loss", "on": "on_policy_loss", "dmd": "dmd_generator_loss"}[variant]
@@ -597,6 +618,55 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
         if variant == "sft":
             (_, videos, captions, _), _, _ = fits[-1]
             assert videos is sft[-1][2][0] and captions is sft[-1][2][1]
+
+
+def test_a_group_is_group_size_rollouts_of_one_task_from_their_own_noise(tiny_ckpt, tmp_path):
+    """Alg. 1 lines 3-5: each (image, T, D) repeated group_size times, in consecutive rows that rl.advantages
+    standardises together (groups), each rollout from its own noise."""
+    args = _args(tiny_ckpt, tmp_path, group_size=3)
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    pairs = train.world.make_pairs(4, seed=0, error_rate=0.0)
+    frame0, tasks, descs = train._batch(pairs, range(4))
+    b = train._group_batch(model, frame0, tasks, descs, args, torch.Generator().manual_seed(0), sde=False)
+    assert b.groups.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3]
+    for g in range(4):
+        rows = (b.groups == g).nonzero().flatten().tolist()
+        assert {b.tasks[r] for r in rows} == {tasks[g]} and {b.descs[r] for r in rows} == {descs[g]}
+        assert all(np.array_equal(b.frame0[r], frame0[g]) for r in rows)
+    assert len({tuple(x.flatten()[:4].tolist()) for x in b.x_0}) == 12
+
+
+def test_update_clips_the_gradient_norm_to_1():
+    """Table 3's max grad norm 1: _update's step moves the weights by lr times a gradient of norm 1, not 20."""
+    w = torch.nn.Parameter(torch.zeros(4))
+    before = w.detach().clone()
+    loss, gnorm, _ = train._update(1, torch.optim.SGD([w], lr=1.0), [w], [types.SimpleNamespace(share=1.0)],
+                                   lambda p: ((10 * w).sum() + (10 * w).sum(), {}), torch.Generator(), "test")
+    assert gnorm == pytest.approx(40.0) and (w.detach() - before).norm().item() == pytest.approx(1.0, rel=1e-6)
+
+
+def test_a_demonstrator_round_weighs_task_and_consistency_by_their_lambdas(tiny_ckpt, tmp_path, monkeypatch):
+    """Alg. 2 lines 11-16: phi's advantages are of lambda_task r_task + lambda_cons r_cons (no r_distill: phi is
+    judged on its own rollouts under c_D)."""
+    advantages_of = _spy(monkeypatch, train.rl, "advantages")
+    _one_step(tiny_ckpt, tmp_path, alternate=1, lambda_task=0.9, lambda_cons=0.7)
+    (rewards, weights, *_), _, _ = advantages_of[-1]
+    assert weights == {"task": 0.9, "consistency": 0.7} and set(rewards) == set(weights)
+
+
+def test_judge_rollouts_solves_with_both_judges_and_an_unjudged_rollout_is_invalid(monkeypatch):
+    """judge_rollouts: solved = task yes and consistency yes; a rollout either judge could not judge is invalid
+    (rl.advantages skips it, the log counts it). The judges are stand-ins that read their verdicts off the "video"."""
+    yes, no = train.reward.Judgment(True, 1.0), train.reward.Judgment(False, -1.0, "x")
+    monkeypatch.setattr(train, "JUDGE", None)
+    monkeypatch.setattr(train.reward, "read_video", lambda v: v)
+    monkeypatch.setattr(train.reward, "judge_task", lambda r, t: r[0])
+    monkeypatch.setattr(train.reward, "judge_consistency", lambda r: r[1])
+    out = train.judge_rollouts([(yes, yes), (yes, no), (no, yes), (yes, train.reward.INVALID),
+                                (train.reward.INVALID, yes)], ["t"] * 5)
+    assert out["solved"][:4].tolist() == [1.0, 0.0, 0.0, 0.0] and out["solved"][4].isnan()
+    assert out["invalid"].tolist() == [False, False, False, True, True]
+    assert out["task"][:4].tolist() == [1.0, 1.0, -1.0, 1.0] and out["consistency"][3].isnan()
 
 
 def test_inner_epochs_update_again_on_the_same_rollouts(tiny_ckpt, tmp_path, monkeypatch):
