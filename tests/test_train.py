@@ -637,11 +637,12 @@ def test_a_group_is_group_size_rollouts_of_one_task_from_their_own_noise(tiny_ck
 
 
 def test_update_clips_the_gradient_norm_to_1():
-    """Table 3's max grad norm 1: _update's step moves the weights by lr times a gradient of norm 1, not 20."""
+    """Table 3's max grad norm 1: _update's SGD step (lr 1) moves the weights by the gradient clipped to norm 1; the
+    gradient itself, (20, 20, 20, 20), has norm 40, which _update reports."""
     w = torch.nn.Parameter(torch.zeros(4))
     before = w.detach().clone()
-    loss, gnorm, _ = train._update(1, torch.optim.SGD([w], lr=1.0), [w], [types.SimpleNamespace(share=1.0)],
-                                   lambda p: ((10 * w).sum() + (10 * w).sum(), {}), torch.Generator(), "test")
+    _, gnorm, _ = train._update(1, torch.optim.SGD([w], lr=1.0), [w], [types.SimpleNamespace(share=1.0)],
+                                lambda p: ((20 * w).sum(), {}), torch.Generator(), "test")
     assert gnorm == pytest.approx(40.0) and (w.detach() - before).norm().item() == pytest.approx(1.0, rel=1e-6)
 
 
