@@ -17,6 +17,12 @@ def small():
     return models.make_model("toy", width=16, emb_dim=32, text_dim=32)
 
 
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped base: a fresh model's zero output layer predicts frame 0 whatever the noise and the text."""
+    return models.load_checkpoint(None)[0].eval()
+
+
 def _inputs(model, texts, seed=0):
     rng = np.random.default_rng(seed)
     scenes = [world.random_scene(rng) for _ in texts]
@@ -170,9 +176,8 @@ def test_unknown_backend_is_a_clear_error():
         models.make_model("nope")
 
 
-def test_generate_is_deterministic_and_independent_of_batching(capsys):
-    # the shipped base: a fresh model's zero output layer predicts frame 0 whatever the noise, so any noise would pass
-    base = models.load_checkpoint(None)[0].eval()
+def test_generate_is_deterministic_and_independent_of_batching(shipped, capsys):
+    base = shipped   # not a fresh model, on which any noise would pass
     rng = np.random.default_rng(1)
     scenes = [world.random_scene(rng) for _ in range(3)]
     frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
@@ -180,7 +185,6 @@ def test_generate_is_deterministic_and_independent_of_batching(capsys):
     a = models.generate(base, frame0, texts, steps=3, seed=5)
     assert capsys.readouterr().out == ""                 # one pass: no progress lines
     assert not np.array_equal(models.generate(base, frame0, texts, steps=3, seed=6), a)   # the noise matters
-    capsys.readouterr()
     b = models.generate(base, frame0, texts, steps=3, seed=5, batch=2)
     lines = capsys.readouterr().out.splitlines()          # a progress line after each of the two passes
     assert [line.split(",")[0].strip() for line in lines] == ["sampled 2/3 videos", "sampled 3/3 videos"]
@@ -199,8 +203,8 @@ def test_decode_is_encode_videos_inverse():
     assert np.array_equal(models.ToyVideoFlow.decode(x, video[:, 0]), video)
 
 
-def test_generate_with_guidance_samples_the_guided_field_against_the_empty_caption():
-    base = models.load_checkpoint(None)[0].eval()   # the shipped base: a fresh model's zero output ignores the text
+def test_generate_with_guidance_samples_the_guided_field_against_the_empty_caption(shipped):
+    base = shipped   # not a fresh model, whose zero output ignores the text
     rng = np.random.default_rng(2)
     scenes = [world.random_scene(rng) for _ in range(2)]
     frame0 = np.stack([world.render(s, world.simulate(s, world.Plan(None)))[0] for s in scenes])
