@@ -735,3 +735,66 @@ def test_eval_dataset_is_the_bench_and_must_be_held_out(tiny_ckpt, tmp_path, mon
                       (["--stage", "distill", "--eval_dataset", held], "--eval_dataset is the rl stage's bench")):
         err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, *argv, "--run_dir", tmp_path / "never"], capsys)
         assert msg in err and not (tmp_path / "never").exists(), (argv, err)
+
+
+def test_video_loss_is_app_a9s_loss_weighted_by_1_minus_t_and_by_the_moving_pixels():
+    """train.video_loss, pretraining's loss (and +SFT's): App. A.9's flow-matching loss under each video's caption,
+    each video weighted (1 - t)^--loss_power and each pixel that differs from the first frame --motion_weight times
+    the others. One video, so the draws of x_0 and t are known; the shipped base, whose velocity reads the caption."""
+    m = train.models.load_checkpoint(None)[0]
+    videos, captions = train.world.pretraining_batch(np.random.default_rng(0), 8)
+    i = next(i for i, v in enumerate(videos) if (v[1:] != v[:1]).any() and captions[i])   # a moving, captioned clip
+    video, caption = videos[i:i + 1], captions[i:i + 1]
+
+    def loss(power, motion_weight, v=video, cap=caption):
+        torch.manual_seed(1)
+        with torch.no_grad():
+            return train.video_loss(m, v, cap, types.SimpleNamespace(loss_power=power, motion_weight=motion_weight))
+
+    torch.manual_seed(1)
+    x_1 = m.encode_video(video)
+    x_0, t = torch.randn_like(x_1), torch.rand(1)          # video_loss's draws, in its order
+    c = m.condition(video[:, 0], caption)
+    with torch.no_grad():
+        plain = train.flow.flow_matching_loss(lambda x, tt: m(x, tt, c), x_0, x_1, t)
+    assert torch.allclose(loss(0.0, 1.0), plain, rtol=1e-6)
+    for power in (1.0, 2.0):
+        assert torch.allclose(loss(power, 1.0), (1 - t).clamp(min=m.cfg.min_one_minus_t) ** power * plain, rtol=1e-5)
+    assert not torch.allclose(loss(0.0, 1.0, cap=["camera pans up 1 for 2 frames then stops"]), plain, rtol=1e-3)
+    moving = loss(0.0, 2.0) - plain                        # the moving pixels' share of the error, counted once more
+    assert moving > 0 and torch.allclose(loss(0.0, 10.0), plain + 9 * moving, rtol=1e-5)
+    still = np.repeat(video[:, :1], video.shape[1], 1)     # nothing moves: every pixel counts once
+    assert torch.equal(loss(0.0, 10.0, v=still), loss(0.0, 1.0, v=still))
+
+
+def test_pretrain_wires_its_flags_into_the_batches_and_losses_and_saves_the_warmed_up_average(tmp_path, monkeypatch):
+    """train.pretrain: batches drawn with --p_goal and without the bench's scenes; the loss is the video loss plus
+    --point_weight times the pointing loss (with --point_goal_only); the EMA's decay at step s is
+    min(--ema, s / (s + 10)) (a warm-up), and the checkpoint holds that average, not the trained weights."""
+    batches, fits, points = (_spy(monkeypatch, owner, n) for owner, n in
+                             ((train.world, "pretraining_batch"), (train, "video_loss"), (train, "pointing_loss")))
+    decays, trained, averaged, ema_step = [], [], [], train.ema_step
+
+    def spy(ema, params, decay):
+        ema, params = list(ema), list(params)
+        ema_step(ema, params, decay)
+        decays.append(decay)
+        trained[:], averaged[:] = [p.detach().clone() for p in params], ema
+
+    monkeypatch.setattr(train, "ema_step", spy)
+    out = str(tmp_path / "base.pt")
+    train.pretrain(train.parse_args([
+        "--stage", "pretrain", "--relate", "--p_goal", "0.5", "--point_weight", "0.1", "--point_goal_only",
+        "--pretrain_steps", "3", "--pretrain_batch", "4", "--width", "8", "--log_every", "1", "--ema", "0.2",
+        "--threads", "2", "--out", out, "--run_dir", str(tmp_path)]))
+    bench_scenes = train.world.bench_scene_keys()
+    assert len(batches) == 3 and all(a[4] == 0.5 and a[5] == bench_scenes for a, _, _ in batches)
+    log = [json.loads(line) for line in open(tmp_path / "pretrain.jsonl")]
+    assert len(log) == len(fits) == len(points) == 3
+    for rec, (_, _, fit), (a, _, point) in zip(log, fits, points):
+        assert a[4] is True                                                       # goal_only
+        assert rec["loss"] == pytest.approx(fit.item() + 0.1 * point.item(), rel=1e-6)
+    assert decays == [1 / 11, 2 / 12, 0.2]
+    saved = list(train.models.load_checkpoint(out)[0].parameters())
+    assert len(saved) == len(averaged) and all(torch.equal(s, e) for s, e in zip(saved, averaged))
+    assert not all(torch.equal(s, w) for s, w in zip(saved, trained))

@@ -317,6 +317,18 @@ def test_reshaped_teleport_by_two_pixels_and_each_fault_costs_three():
     assert j.why == "appears yellow, reshaped red" and j.score == 3.0 - 3.0 * 2
 
 
+
+def test_a_blob_as_small_away_from_the_border_is_still_tracked():
+    """reward._clipped: a blob touching the border with under 0.8 of its frame-0 pixels is a sprite half out of view,
+    whose centroid is not the sprite's, so the tracks and the teleport test skip it. Away from the border a blob as
+    small is the sprite drawn smaller (within the reshape range), and its jump is still a teleport."""
+    jump = _video(SCENE, GOOD)[[0, 0, 2, 3, 4, 5]]  # the red square jumps 2 px from frame 1 to frame 2
+    shrunk = jump.copy()
+    shrunk[2, 7:10, 3] = SCENE.background           # ... and loses its trailing column there: 6 of 9 pixels
+    assert reward.judge_consistency(shrunk).why == "teleports red"
+    leaving = _video(SCENE, Plan(0, -1, 0, 3))      # the red square leaves the view: 9, 9, 6, then 3 pixels
+    assert reward.judge_consistency(leaving).yes    # cut by the border: neither reshaped nor a teleport
+
 def test_task_margins_on_hand_made_centres():
     """world.task_margin's rules in pixels, > 0 inside; a margin of exactly 0 is a no for the judges."""
     tm = world.task_margin
