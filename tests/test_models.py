@@ -43,6 +43,30 @@ def test_text_encoder_is_order_aware(small):
     assert not torch.allclose(pooled[0], pooled[1], atol=1e-4)  # same bag of words, different order
 
 
+def test_text_encoder_reads_the_words_alone_and_a_prompt_fits_up_to_max_words(small):
+    """TextEncoder: a caption's keys are its words (and slot 0, so that an empty caption has one key and a finite
+    encoding); its pooled encoding is the mean over its words. Padding is masked: moving the padding slots' position
+    embeddings leaves the words' encodings as they were. A prompt of max_words words fits; one more is an error."""
+    ids = small.tokenizer(["[red square]: move to the blue circle", ""])
+    n = int((ids[0] > 0).sum())
+    with torch.no_grad():
+        tokens, attend, pooled = small.text(ids)
+        assert attend[1].tolist() == [True] + [False] * (ids.shape[1] - 1) and torch.isfinite(tokens).all()
+        assert torch.allclose(pooled[0], tokens[0, :n].mean(0), atol=1e-6) and not pooled[1].any()
+        pos = small.text.pos.clone()
+        # a random shift: LayerNorm would remove a constant one before any attention saw it
+        small.text.pos[n:] += torch.randn(small.text.pos[n:].shape, generator=torch.Generator().manual_seed(0))
+        try:
+            moved = small.text(ids[:1])[0]
+        finally:
+            small.text.pos.copy_(pos)
+    assert torch.allclose(moved[0, :n], tokens[0, :n], atol=1e-5)
+    words = small.cfg.max_words
+    small.tokenizer([" ".join(["red"] * words)])
+    with pytest.raises(ValueError, match=f"has {words + 1} words; at most {words}"):
+        small.tokenizer([" ".join(["red"] * (words + 1))])
+
+
 def test_unknown_word_is_a_clear_error(small):
     with pytest.raises(ValueError, match="unknown word 'purple'"):
         small.tokenizer(["[purple square]: move to the blue circle"])

@@ -129,7 +129,30 @@ def test_sft_labels_are_short_tasks_the_video_solves_or_trivial_moves():
             assert reward.judge_task(v, t).yes, t
     assert world.sft_task(Scene([Sprite("red", "square", 4, 4), Sprite("blue", "circle", 12, 4)]), Plan(None), rng) \
         is None
+    # a derived task is one the motion solves and frame 0 did not; where none is, the move's dominant direction
+    for _ in range(200):
+        scene = world.random_scene(rng)
+        plan = world.random_plan(scene, rng)
+        label = world.sft_task(scene, plan, rng)
+        if label is not None and label.split(": ")[1] not in ("move left", "move right", "move up", "move down"):
+            pos = world.simulate(scene, plan)
+            task = world.parse_task(label)
+            assert world._margins(scene, task, pos[-1]) >= 0 > world._margins(scene, task, pos[0]), label
+    apart = Scene([Sprite("red", "square", 6, 6), Sprite("blue", "circle", 13, 13)])   # 2 px solve nothing here
+    for vx, vy, word in ((1, 0, "right"), (-1, 0, "left"), (0, 1, "down"), (0, -1, "up"), (1, 1, "right")):
+        assert world.sft_task(apart, Plan(0, vx, vy, 2), rng) == f"[red square]: move {word}"
 
+
+def test_pretraining_captions_are_empty_vague_or_detailed_in_their_shares():
+    """world.pretraining_batch: an empty caption with probability p_empty, a vague one (who moves, not how) with
+    p_vague, else D's detailed form; a still clip says "nothing moves" either way, so the shares are counted on the
+    moving clips."""
+    _, captions = world.pretraining_batch(np.random.default_rng(5), 400, p_vague=0.3, p_empty=0.2)
+    moving = [c for c in captions if c not in ("", "nothing moves")]
+    vague = [c for c in moving if " for " not in c]
+    assert all(c.endswith(("moves", "pans")) for c in vague)
+    assert abs(captions.count("") / 400 - 0.2) < 0.06
+    assert abs(len(vague) / len(moving) - 0.3 / 0.8) < 0.08
 
 def test_task_format_and_parse_round_trip(bench):
     for p in bench:
