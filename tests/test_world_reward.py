@@ -154,6 +154,26 @@ def test_pretraining_captions_are_empty_vague_or_detailed_in_their_shares():
     assert abs(captions.count("") / 400 - 0.2) < 0.06
     assert abs(len(vague) / len(moving) - 0.3 / 0.8) < 0.08
 
+def test_goal_clips_move_by_a_feasible_tasks_canonical_solution_and_are_captioned_by_its_goal():
+    """world.goal_clip: a feasible task of the scene and its canonical solution, which solves it; goal_caption says
+    the goal as a captioner would, each kind in its own words."""
+    rng, n = np.random.default_rng(0), 0
+    for _ in range(20):
+        scene = world.random_scene(rng)
+        clip = world.goal_clip(scene, rng)
+        if clip is not None:
+            task, plan = clip
+            assert plan == world.canonical_solution(world.solutions(scene, task, {}))
+            assert world._margins(scene, task, world.simulate(scene, plan)[-1]) >= 0
+            n += 1
+    assert n >= 15
+    captions = {("move_to", "red square", "blue circle"): "red square moves to the blue circle",
+                ("level_with", "red square", "blue circle"): "red square moves level with the blue circle",
+                ("edge", "red square", "left"): "red square moves to the left edge",
+                ("centre", world.FIRST_PERSON, "blue circle"): "camera pans to the blue circle"}
+    for (kind, agent, target), caption in captions.items():
+        assert world.goal_caption(world.Task("navigation", kind, agent, target)) == caption
+
 def test_task_format_and_parse_round_trip(bench):
     for p in bench:
         assert p.task.text.startswith("[") and "]: " in p.task.text
