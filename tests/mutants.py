@@ -1,7 +1,7 @@
 """Can the tests fail? Change one line of an equation or its wiring at a time, run the tests that guard that file,
 and report each change the tests let through ("survived"). Not part of the suite (it runs the suite's files again
-and again: about two hours on two cores -- stop 84's 128 changes took 43 min, stop 85's 38 took 41, stop 86's 34 took
-32 -- most of it train.py's); run it after changing a formula or its tests:
+and again: about two hours on two cores -- stop 84's 128 changes took 43 min, stop 85's 38 took 41, stop 86's 38 took
+36 -- most of it train.py's); run it after changing a formula or its tests:
 
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
@@ -340,6 +340,18 @@ MUTANTS = {
          '    return lambda x, t: model(x, t, c_a if float(t[0]) <= t_switch else c_b)', 'the handoff one step late'),
         ('                hits[role].append(d[head] <= 1)',
          '                hits[role].append(d.min() <= 1)', "pointing's supervised head as the best head"),
+        ('    c_b = model.condition(frame0, prompts_for(pairs, cond_b))',
+         '    c_b = model.condition(frame0, prompts_for(pairs, cond_a))',
+         'the handoff to the prompt it starts from'),
+        ('flow.sample_ode(switched_field(model, c_a, c_b, float(ts[k])), x_0, steps)',
+         'flow.sample_ode(switched_field(model, c_b, c_a, float(ts[k])), x_0, steps)',
+         'the handoff from B to A'),
+        ('distill.discrepancy(model, xs[k], ts[k].expand(n), c_a, c_b).mean())',
+         'distill.discrepancy(model, xs[k], ts[k].expand(n), c_a, c_a).mean())',
+         "the handoff's Eq. 4 between A and A"),
+        ('                             guidance=guidance)\n    seconds = time.time() - t0',
+         '                             )\n    seconds = time.time() - t0',
+         "--guidance not reaching the bench's videos"),
     ]),
     "report.py": (REPORT, [
         ('    score = succ / valid if valid else float("nan")', '    score = succ / n if n else float("nan")',

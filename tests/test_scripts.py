@@ -64,6 +64,22 @@ def test_bench_on_the_shipped_base():
     assert json.loads(r.stdout.splitlines()[-1])["checkpoint"] == "shipped base"
 
 
+@pytest.mark.skipif(not os.path.exists(os.path.join(ROOT, "checkpoints", "base.pt")), reason="no shipped base")
+def test_evaluate_samples_the_bench_with_its_guidance():
+    """bench.evaluate(guidance=w) judges the videos models.generate samples with guidance w (the shipped base, whose
+    velocity reads the prompt, so that guidance changes them)."""
+    import numpy as np
+
+    import bench
+    import models
+    base = models.load_checkpoint(None)[0].eval()
+    res, videos, pairs = bench.evaluate(base, "task", n=2, steps=2, guidance=3.0)
+    prompts = bench.prompts_for(pairs, "task")
+    assert res["guidance"] == 3.0
+    assert np.array_equal(videos, models.generate(base, np.stack([p.frame0 for p in pairs]), prompts, steps=2, seed=0,
+                                                  guidance=3.0))
+    assert not np.array_equal(videos, bench.evaluate(base, "task", n=2, steps=2)[1])
+
 def test_help_lists_every_flag_with_its_doc():
     r = run("train.py", "--help")
     assert r.returncode == 0 and "--beta_d" in r.stdout and "Eq. 12" in r.stdout and "--resume" in r.stdout
@@ -209,7 +225,16 @@ def test_handoff_switches_the_prompt_at_the_grid_time(tiny_ckpt, tmp_path):
         sw = {s: flow.sample_ode(bench.switched_field(model, c_a, c_b, s), x_0, 4) for s in (0.0, 0.5, 1.0)}
     assert torch.equal(sw[0.0], only["b"]) and torch.equal(sw[1.0], only["a"])
     assert not torch.equal(sw[0.5], only["a"]) and not torch.equal(sw[0.5], only["b"])
-    res = bench.handoff(model, "task", "oracle", n=3, seed=0, steps=2)
+    decoded, decode = [], model.decode               # the final states handoff() judges, one per switch time
+    model.decode = lambda x_1, f0: decoded.append(x_1) or decode(x_1, f0)
+    try:
+        res = bench.handoff(model, "task", "oracle", n=3, seed=0, steps=2)
+    finally:
+        del model.decode
+    noise = models.seeded_noise(model, 3, 0)         # evaluate()'s
+    with torch.no_grad():                            # the switch at t = 0 is B's ODE, at t = 1 A's
+        for k, c in ((0, c_b), (2, c_a)):
+            assert torch.equal(decoded[k], flow.sample_ode(lambda x, t: model(x, t, c), noise, 2))
     assert res["switch"] == [0.0, 0.5, 1.0] and len(res["discrepancy"]) == 2 and res["discrepancy"][0] > 0
     for k, cond in ((0, "oracle"), (2, "task")):
         ev = bench.evaluate(model, cond, n=3, seed=0, steps=2)[0]
