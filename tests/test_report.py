@@ -1,6 +1,7 @@
 """report.py, the reproduction report: its arithmetic over seeds, its denominators, and a --quick run end to end."""
 import json
 import os
+import types
 
 import numpy as np
 import pytest
@@ -131,6 +132,33 @@ def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
     (tmp_path / "ck.pt").write_bytes(b"x")
     assert bench.file_digest(str(tmp_path / "ck.pt")) == "2d711642b726b044"       # sha256(b"x")[:16]
 
+
+def test_the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_rebuilt(tmp_path, monkeypatch):
+    """report.run_experiments with a base (--checkpoint): every train.py run gets --init, and is recorded with the
+    base's digest, so a second report runs nothing and a base rebuilt at the same path runs everything again.
+    train.py is not run: a stand-in writes the summary a finished run leaves."""
+    calls = []
+
+    def train_py(cmd, **kw):
+        calls.append(cmd)
+        stage, d = cmd[cmd.index("--stage") + 1], cmd[cmd.index("--run_dir") + 1]
+        open(os.path.join(d, report.SUMMARY[stage]), "w").write("{}")
+        return types.SimpleNamespace(returncode=0)
+
+    monkeypatch.setattr(report.subprocess, "run", train_py)
+    base, out = tmp_path / "base.pt", str(tmp_path / "out")
+    base.write_bytes(b"a")
+    dirs = report.run_experiments(out, [0], "quick", jobs=1, init=str(base))
+    assert len(calls) == len(dirs) == len(report.EXPERIMENTS)
+    assert all(c[c.index("--init") + 1] == str(base) for c in calls)
+    assert all(json.load(open(os.path.join(d, "report_cmd.json")))["base"] == bench.file_digest(str(base))
+               for d in dirs.values())
+    calls.clear()
+    report.run_experiments(out, [0], "quick", jobs=1, init=str(base))
+    assert calls == []
+    base.write_bytes(b"b")                                   # rebuilt where it was
+    report.run_experiments(out, [0], "quick", jobs=1, init=str(base))
+    assert len(calls) == len(report.EXPERIMENTS)
 
 def test_each_experiment_sets_what_its_figure_says_it_does():
     """EXPERIMENTS through train.py's own parser: Fig. 5's four runs select the settings fig5_setting names, Fig. 4
