@@ -160,6 +160,7 @@ def test_the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_re
     report.run_experiments(out, [0], "quick", jobs=1, init=str(base))
     assert len(calls) == len(report.EXPERIMENTS)
 
+
 def test_each_experiment_sets_what_its_figure_says_it_does():
     """EXPERIMENTS through train.py's own parser: Fig. 5's four runs select the settings fig5_setting names, Fig. 4
     right's beta_d and the error-rate figure's rates are the flags' values, Fig. 8's ablation differs from WMSD in

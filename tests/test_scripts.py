@@ -80,6 +80,7 @@ def test_evaluate_samples_the_bench_with_its_guidance():
                                                   guidance=3.0))
     assert not np.array_equal(videos, bench.evaluate(base, "task", n=2, steps=2)[1])
 
+
 def test_help_lists_every_flag_with_its_doc():
     r = run("train.py", "--help")
     assert r.returncode == 0 and "--beta_d" in r.stdout and "Eq. 12" in r.stdout and "--resume" in r.stdout

@@ -154,6 +154,7 @@ def test_pretraining_captions_are_empty_vague_or_detailed_in_their_shares():
     assert abs(captions.count("") / 400 - 0.2) < 0.06
     assert abs(len(vague) / len(moving) - 0.3 / 0.8) < 0.08
 
+
 def test_goal_clips_move_by_a_feasible_tasks_canonical_solution_and_are_captioned_by_its_goal():
     """world.goal_clip: a feasible task of the scene and its canonical solution, which solves it; goal_caption says
     the goal as a captioner would, each kind in its own words."""
@@ -173,6 +174,7 @@ def test_goal_clips_move_by_a_feasible_tasks_canonical_solution_and_are_captione
                 ("centre", world.FIRST_PERSON, "blue circle"): "camera pans to the blue circle"}
     for (kind, agent, target), caption in captions.items():
         assert world.goal_caption(world.Task("navigation", kind, agent, target)) == caption
+
 
 def test_task_format_and_parse_round_trip(bench):
     for p in bench:
@@ -360,7 +362,6 @@ def test_reshaped_teleport_by_two_pixels_and_each_fault_costs_three():
     assert j.why == "appears yellow, reshaped red" and j.score == 3.0 - 3.0 * 2
 
 
-
 def test_a_blob_as_small_away_from_the_border_is_still_tracked():
     """reward._clipped: a blob touching the border with under 0.8 of its frame-0 pixels is a sprite half out of view,
     whose centroid is not the sprite's, so the tracks and the teleport test skip it. Away from the border a blob as
@@ -371,6 +372,7 @@ def test_a_blob_as_small_away_from_the_border_is_still_tracked():
     assert reward.judge_consistency(shrunk).why == "teleports red"
     leaving = _video(SCENE, Plan(0, -1, 0, 3))      # the red square leaves the view: 9, 9, 6, then 3 pixels
     assert reward.judge_consistency(leaving).yes    # cut by the border: neither reshaped nor a teleport
+
 
 def test_task_margins_on_hand_made_centres():
     """world.task_margin's rules in pixels, > 0 inside; a margin of exactly 0 is a no for the judges."""
