@@ -44,3 +44,10 @@ def tiny_ckpt(tmp_path_factory):
     assert "step     3/3" in r.stdout and "ETA" in r.stdout
     assert len(open(d / "pretrain.jsonl").read().splitlines()) == 3
     return ckpt
+
+
+@pytest.fixture(scope="session")
+def shipped():
+    """The shipped base, loaded once: unlike a fresh model, whose zero output layer predicts frame 0 whatever the
+    noise and the text, its velocity reads both."""
+    return models.load_checkpoint(None)[0].eval()

@@ -17,12 +17,6 @@ def small():
     return models.make_model("toy", width=16, emb_dim=32, text_dim=32)
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    """The shipped base: a fresh model's zero output layer predicts frame 0 whatever the noise and the text."""
-    return models.load_checkpoint(None)[0].eval()
-
-
 def _inputs(model, texts, seed=0):
     rng = np.random.default_rng(seed)
     scenes = [world.random_scene(rng) for _ in texts]

@@ -65,14 +65,14 @@ def test_bench_on_the_shipped_base():
 
 
 @pytest.mark.skipif(not os.path.exists(os.path.join(ROOT, "checkpoints", "base.pt")), reason="no shipped base")
-def test_evaluate_samples_the_bench_with_its_guidance():
+def test_evaluate_samples_the_bench_with_its_guidance(shipped):
     """bench.evaluate(guidance=w) judges the videos models.generate samples with guidance w (the shipped base, whose
     velocity reads the prompt, so that guidance changes them)."""
     import numpy as np
 
     import bench
     import models
-    base = models.load_checkpoint(None)[0].eval()
+    base = shipped
     res, videos, pairs = bench.evaluate(base, "task", n=2, steps=2, guidance=3.0)
     prompts = bench.prompts_for(pairs, "task")
     assert res["guidance"] == 3.0

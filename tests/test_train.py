@@ -737,11 +737,11 @@ def test_eval_dataset_is_the_bench_and_must_be_held_out(tiny_ckpt, tmp_path, mon
         assert msg in err and not (tmp_path / "never").exists(), (argv, err)
 
 
-def test_video_loss_is_app_a9s_loss_weighted_by_1_minus_t_and_by_the_moving_pixels():
+def test_video_loss_is_app_a9s_loss_weighted_by_1_minus_t_and_by_the_moving_pixels(shipped):
     """train.video_loss, pretraining's loss (and +SFT's): App. A.9's flow-matching loss under each video's caption,
     each video weighted (1 - t)^--loss_power and each pixel that differs from the first frame --motion_weight times
     the others. One video, so the draws of x_0 and t are known; the shipped base, whose velocity reads the caption."""
-    m = train.models.load_checkpoint(None)[0]
+    m = shipped
     videos, captions = train.world.pretraining_batch(np.random.default_rng(0), 8)
     i = next(i for i, v in enumerate(videos) if (v[1:] != v[:1]).any() and captions[i])   # a moving, captioned clip
     video, caption = videos[i:i + 1], captions[i:i + 1]
