@@ -1,7 +1,8 @@
 """Can the tests fail? Change one line of an equation or its wiring at a time, run the tests that guard that file,
 and report each change the tests let through ("survived"). Not part of the suite (it runs the suite's files again
 and again: about two hours on two cores -- stop 84's 128 changes took 43 min, stop 85's 38 took 41, stop 86's 41 took
-36 -- most of it train.py's); run it after changing a formula or its tests:
+36, stop 87's 21 on the real backends and the VLM judge 10 -- most of it train.py's); run it after changing a formula
+or its tests:
 
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
@@ -496,6 +497,54 @@ MUTANTS = {
         ('    rows = [index.index(j) for j in range(len(slot))]',
          '    rows = list(range(len(slot)))', "distinct_condition's rows not the first of each"),
         ('        if missing:\n', '        if False:\n', 'a LoRA file for another model loaded silently'),
+        ('        self.tokenizer.padding_side = "left"\n', '        self.tokenizer.padding_side = "right"\n',
+         "LTX-2's prompts padded on the right"),
+        ('ids.attention_mask, padding_side="left")', 'ids.attention_mask, padding_side="right")',
+         "LTX-2's connectors told the padding is on the right"),
+        ("    img = torch.as_tensor(np.asarray(frame0)).float().div(127.5).sub(1)",
+         "    img = torch.as_tensor(np.asarray(frame0)).float().div(255)",
+         "a real backend's first frame in [0, 1], not [-1, 1]"),
+        ("x_1.float()], dim=2), inverse=True)", "x_1.float()], dim=2), inverse=False)",
+         "LTX-2's decode normalising instead of denormalising"),
+        ("latent_dist.mode().float())", "latent_dist.sample().float())", "LTX-2's first frame a sampled latent"),
+        ("        z = (x_1.float() / self.vae.config.scaling_factor)",
+         "        z = (x_1.float() * self.vae.config.scaling_factor)", "HunyuanVideo-1.5's decode scaling the wrong way"),
+        ("        return z * self.vae.config.scaling_factor\n", "        return z\n",
+         "HunyuanVideo-1.5's first-frame latent unscaled"),
+        ("            if n > self.max_len:\n", "            if n >= self.max_len:\n",
+         "LTX-2 refusing a prompt that fits exactly"),
+        ('size=video.shape[2:4], mode="nearest")', 'size=video.shape[2:4], mode="bilinear")',
+         "the decoded frame 0 resized bilinearly"),
+        ('run.get("lora_alpha", 16.0))', '16.0)', "a LoRA file's alpha ignored when its adapters are added"),
+    ]),
+    "train.py (real models)": (["tests/test_real_backends.py"], [
+        ("        model.transformer.enable_gradient_checkpointing()\n", "        pass\n",
+         "--grad_checkpoint not arriving"),
+        ("        models.offload(model.text_encoder)\n", "        pass\n", "--offload_text not arriving"),
+        ("        judge.offload()\n", "        pass\n", "--offload_judge not arriving"),
+    ]),
+    "bench.py (real models)": (["tests/test_real_backends.py"], [
+        ("offload_text=a.offload_text, offload_judge=a.offload_judge)",
+         "offload_text=False, offload_judge=a.offload_judge)", "bench.py's --offload_text not arriving"),
+        ("offload_text=a.offload_text, offload_judge=a.offload_judge)",
+         "offload_text=a.offload_text, offload_judge=False)", "bench.py's --offload_judge not arriving"),
+    ]),
+    "reward.py (VLM judge)": (["tests/test_real_backends.py"], [
+        ("        idx = np.linspace(0, len(v) - 1, ", "        idx = np.linspace(0, len(v) // 2, ",
+         "the VLM judge's frames from the first half only"),
+        ("        task = self._judge(videos, [BENCH_TASK_PROMPT.format(eval_prompt=t) for t in tasks], \"1\", \"0\")",
+         "        task = self._judge(videos, [BENCH_TASK_PROMPT.format(eval_prompt=t) for t in tasks], \"0\", \"1\")",
+         "the bench's task answer read the wrong way round"),
+        ("agent_name=world.split_task(t)[0]) for t in tasks]", "agent_name=world.split_task(t)[1]) for t in tasks]",
+         "the task reward's agent the instruction"),
+        ("agent_name=a, agent_task_text=i)", "agent_name=i, agent_task_text=a)",
+         "the bench's agent prompt with agent and task swapped"),
+        ("        return self._judge(videos, [CONSISTENCY_REWARD_PROMPT] * len(videos), \"Yes\", \"No\")",
+         "        return self._judge(videos, [BENCH_CONSISTENCY_PROMPT] * len(videos), \"Yes\", \"No\")",
+         "the training consistency reward asking the bench's question"),
+        ("        mm = (enc.input_ids == self.ids[\"<|image_pad|>\"]).long()         # 0 text",
+         "        mm = torch.zeros_like(enc.input_ids)         # 0 text",
+         "the judge's image tokens marked as text"),
     ]),
 }
 

@@ -89,6 +89,69 @@ def test_ltx2_latents_are_normalised_as_diffusers_pipeline_normalises_them(ltx):
         vae.latents_std.copy_(kept[1])
 
 
+def test_ltx2_encodes_prompts_as_its_pipeline_does(ltx):
+    """LTX2Video.condition's text against diffusers' LTX-2 pipeline's own encoding: Gemma's hidden states of every
+    layer for prompts padded on the left, through the text connectors told that side. The two prompts differ in
+    length, so the padding side shows."""
+    from types import SimpleNamespace
+
+    from diffusers import LTX2ImageToVideoPipeline as P
+    m, f0, _, _ = ltx
+    texts = ["[magenta cross]: stop level with the blue triangle", "[first-person view]: centre the white square"]
+    host = SimpleNamespace(tokenizer=m.tokenizer, text_encoder=m.text_encoder)   # what the pipeline's method reads
+    emb, mask = P._get_gemma_prompt_embeds(host, texts, max_sequence_length=m.max_len, device="cpu",
+                                           dtype=torch.float32)
+    assert mask.sum(1).tolist() == [8, 6] and mask[:, -1].all()               # left-padded to 16
+    video, audio, cmask = m.connectors(emb, mask, padding_side="left")       # the pipeline: the tokenizer's side
+    c = m.condition(f0, texts)
+    assert torch.allclose(c["text"], video, atol=1e-6) and torch.allclose(c["audio_text"], audio, atol=1e-6)
+    assert torch.equal(c["mask"], cmask)
+
+
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_first_frame_latents_and_decoded_videos_are_the_pipelines(cls):
+    """The first frame's VAE latent and the decoded video against diffusers' image-to-video pipelines' own steps:
+    the image to [-1, 1] by the pipeline's video processor and encoded to the latent's mode; LTX-2 then normalises
+    it per channel with the VAE's latent mean and std (set here to other values than the tiny VAE's 0 and 1),
+    HunyuanVideo-1.5 multiplies it by the VAE's scaling factor (the tiny one's is 1.037). Decoding undoes that, and
+    the pipeline's postprocess gives the frames in [0, 1], which ours are to uint8's rounding. The first frames are
+    at the model's resolution, so no resize differs."""
+    from diffusers.video_processor import VideoProcessor
+    m = cls.tiny(world.VOCAB + ["[", "]:"])
+    vae = m.vae
+    f0 = np.stack([p.frame0 for p in world.make_pairs(2, seed=0, error_rate=0.0)]).repeat(2, 1).repeat(2, 2)
+    assert f0.shape[1:3] == (m.height, m.width)
+    images = [Image.fromarray(f) for f in f0]
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, *m.latent_shape(), generator=g)
+    proc = VideoProcessor(vae_scale_factor=vae.spatial_compression_ratio, resample="bilinear")
+    if cls is models.LTX2Video:
+        from diffusers import LTX2ImageToVideoPipeline as P
+        from diffusers.pipelines.ltx2.pipeline_ltx2_image2video import retrieve_latents
+        vae.latents_mean.copy_(torch.randn(vae.latents_mean.shape, generator=g))
+        vae.latents_std.copy_(torch.rand(vae.latents_std.shape, generator=g) + 0.5)
+        pixels = proc.preprocess(images, height=m.height, width=m.width)
+        z = torch.cat([retrieve_latents(vae.encode(im[None, :, None]), None, "argmax") for im in pixels])
+        latent = P._normalize_latents(z, vae.latents_mean, vae.latents_std)
+        full = P._denormalize_latents(torch.cat([latent, x], 2), vae.latents_mean, vae.latents_std,
+                                      vae.config.scaling_factor)
+        video = vae.decode(full, None, return_dict=False)[0]
+    else:
+        from diffusers.pipelines.hunyuan_video1_5.image_processor import HunyuanVideo15ImageProcessor
+        from diffusers.pipelines.hunyuan_video1_5.pipeline_hunyuan_video1_5_image2video import \
+            HunyuanVideo15ImageToVideoPipeline as P
+        assert vae.config.scaling_factor != 1
+        proc = HunyuanVideo15ImageProcessor(vae_scale_factor=vae.spatial_compression_ratio, vae_latent_channels=4)
+        latent = torch.cat([P._get_image_latents(vae, proc, im, m.height, m.width, "cpu") for im in images])
+        video = torch.cat([vae.decode(x[i:i + 1] / vae.config.scaling_factor, return_dict=False)[0] for i in range(2)])
+    with torch.no_grad():
+        assert torch.allclose(m._image_latent(f0), latent, atol=1e-5)
+        ours = m.decode(x, f0)
+    want = proc.postprocess_video(video.detach(), output_type="np")           # (B, F, H, W, 3) in [0, 1]
+    assert ours.shape == want.shape and np.abs(ours[:, 1:] / 255 - want[:, 1:]).max() <= 0.51 / 255
+    assert np.array_equal(ours[:, 0], f0)                                   # frame 0: the given observation
+
+
 def test_hunyuan15_velocity_and_first_frame_conditioning(hy):
     m, f0, c, _ = hy
     x = torch.randn(2, *m.latent_shape())
@@ -159,6 +222,48 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
     torch.save({"lora": {"blocks.99.lora_A.weight": torch.zeros(1)}, "meta": {}}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="1 LoRA weights have no place in this model"):
         models.load_lora(m, str(tmp_path / "other.pt"))
+
+
+def test_a_lora_file_brings_its_runs_rank_and_alpha(tmp_path):
+    """bench.py --lora: load_lora(add=True) gives a fresh base adapters of the rank and alpha the file's run used
+    (train.py's args in its meta), so the Executor it rebuilds computes the run's velocities -- the alpha scales
+    the adapters' output, so a default alpha would compute others."""
+    m, f0, c_E, _ = _tiny(models.LTX2Video)
+    models.add_lora(m, 4, 3.0)
+    for p in models.lora_parameters(m):
+        p.data.normal_(0, 0.1, generator=torch.Generator().manual_seed(0))
+    models.save_lora(m, str(tmp_path / "lora.pt"), {"args": {"lora_rank": 4, "lora_alpha": 3.0}})
+    fresh = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
+    models.load_lora(fresh, str(tmp_path / "lora.pt"), add=True)
+    x, t = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(1)), torch.tensor([0.3, 0.6])
+    with torch.no_grad():
+        assert torch.allclose(fresh(x, t, c_E), m(x, t, c_E), atol=1e-6)
+        with models.adapters_disabled(m):
+            assert not torch.allclose(fresh(x, t, c_E), m(x, t, c_E), atol=1e-4)   # the adapters matter
+
+
+@pytest.mark.parametrize("flags", [False, True])
+def test_the_loaders_checkpoint_and_offload_when_asked(flags, monkeypatch):
+    """train.load_base and make_judge (train.py's and bench.py's loaders) wire --grad_checkpoint into the
+    transformer, --offload_text into models.offload of the text encoder and --offload_judge of the VLM, and do none
+    of it unasked; bench.py hands its two offload flags to them. (On this machine offloading moves nothing, so the
+    call itself is what is checked.)"""
+    import bench
+    offloaded = []
+    monkeypatch.setattr(models, "offload", offloaded.append)
+    m = train.load_base(train.Args(model="ltx2-tiny", grad_checkpoint=flags, offload_text=flags))
+    judge = train.make_judge(train.Args(judge="qwen-vl-tiny", offload_judge=flags))
+    assert m.transformer.is_gradient_checkpointing == flags
+    assert offloaded == ([m.text_encoder, judge.model] if flags else [])
+    seen = []
+
+    def load_base(args):   # bench.py's loader call, stopped there with an error bench.py reports
+        seen.append(args)
+        raise ValueError("stop here")
+    monkeypatch.setattr(train, "load_base", load_base)
+    with pytest.raises(SystemExit):
+        bench.main(["--model", "ltx2-tiny", "--judge", "qwen-vl-tiny"] + ["--offload_text", "--offload_judge"] * flags)
+    assert (seen[0].offload_text, seen[0].offload_judge) == (flags, flags)
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
@@ -285,6 +390,11 @@ def test_a_prompt_longer_than_ltx2s_text_path_is_an_error_not_cut(ltx, tmp_path)
     long = " ".join(["red square moves right 1"] * 5)
     with pytest.raises(ValueError, match=r"has \d+ tokens; LTX-2's text path takes at most 16"):
         m.condition(f0[:1], [long])
+    words = long.split()
+    assert len(m.tokenizer(" ".join(words[:16])).input_ids) == 16
+    assert m.condition(f0[:1], [" ".join(words[:16])])["mask"].shape[0] == 1   # exactly 16 tokens: taken whole
+    with pytest.raises(ValueError, match="has 17 tokens"):
+        m.check_prompts([" ".join(words[:17])])
     data = _toy_dataset(tmp_path / "data", 2)
     row = json.loads(open(data).readline())
     with open(data, "a") as f:
@@ -434,6 +544,20 @@ def test_tiny_vlm_judge_batches_like_single_items():
     assert prompts[0].startswith(f"Instruction: {tasks[0]} Target agent: {world.split_task(tasks[0])[0]} You are")
     assert reward.BENCH_AGENT_PROMPT.format(eval_prompt="[a b]: go", agent_name="a b", agent_task_text="go").startswith(
         "Full instruction: [a b]: go Expected acting agent: a b Expected task for that agent: go")
+    inner, seen = judge.model.model, []
+    rope_index = inner.get_rope_index
+
+    def rope(ids, **k):        # the M-RoPE positions (time, height, width) the model makes of the judge's inputs
+        out = rope_index(ids, **k)
+        seen.append((ids, out[0]))
+        return out
+    inner.get_rope_index = rope
+    judge.logits([np.zeros((2, 64, 64, 3), np.uint8)], prompts[:1])   # 64 px: 2 x 2 tokens a frame
+    del inner.get_rope_index
+    ids, pos = seen[0]
+    image = ids == judge.ids["<|image_pad|>"]
+    assert image.any() and (pos[1][image] != pos[2][image]).any()   # each frame's tokens on a 2-D grid of positions,
+    assert (pos[0][~image] == pos[1][~image]).all() and (pos[1][~image] == pos[2][~image]).all()   # text on a line
     batched = judge.logits(videos, prompts)
     for i in range(3):
         assert np.allclose(batched[i], judge.logits(videos[i:i + 1], prompts[i:i + 1])[0], atol=1e-4)
@@ -446,6 +570,34 @@ def test_tiny_vlm_judge_batches_like_single_items():
     assert len(judge.bench(videos[:1], tasks[:1])[0]) == 3
     r = run("train.py", "--judge", "qwen-vl")
     assert r.returncode == 2 and "--judge qwen-vl needs --judge_path" in r.stderr
+
+
+def test_the_vlm_judges_frames_prompts_and_answer_tokens():
+    """What VLMJudge asks and reads, with its logits stubbed (random weights answer nothing): the frames it shows
+    are spread evenly from the first to the last; the training rewards ask Figs. 10-11's prompts and read "Yes" /
+    "No", the bench asks Figs. 15-17's with the agent and its task in their places and reads "1" / "0"."""
+    judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
+    video = np.arange(6)[:, None, None, None].repeat(8, 1).repeat(8, 2).repeat(3, 3).astype(np.uint8) * 10
+    assert [np.asarray(im)[0, 0, 0] for im in judge._frames(video)] == [0, 20, 30, 50]     # 4 of 6 frames
+    asked, likely = [], ["Yes"]
+
+    def logits(videos, prompts):   # the likely token 5 above the rest: a reader of the wrong pair flips or fails
+        asked.extend(prompts)
+        out = np.zeros((len(prompts), len(judge.tokenizer.get_vocab())), np.float32)
+        out[:, judge.ids[likely[0]]] = 5.0
+        return out
+    judge.logits = logits
+    task = "[red square]: move right"
+    assert judge.task_reward([video], [task])[0].yes is True
+    assert asked.pop() == reward.TASK_REWARD_PROMPT.format(instruction=task, agent_name="red square")
+    assert judge.consistency_reward([video])[0].yes is True and asked.pop() == reward.CONSISTENCY_REWARD_PROMPT
+    likely[0] = "0"
+    verdicts = judge.bench([video], [task])[0]
+    assert [verdicts[k].yes for k in ("task", "agent", "consistency")] == [False] * 3
+    assert asked[-3:] == [reward.BENCH_TASK_PROMPT.format(eval_prompt=task),
+                          reward.BENCH_AGENT_PROMPT.format(eval_prompt=task, agent_name="red square",
+                                                           agent_task_text="move right"),
+                          reward.BENCH_CONSISTENCY_PROMPT]
 
 
 def test_an_offloaded_judge_visits_for_each_batch_and_gives_the_same_logits():
