@@ -6,6 +6,7 @@ or its tests:
 
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
+    python tests/mutants.py --only "train.py (pretrain)"    # or to one part of a file, as MUTANTS names it
     python tests/mutants.py --what "Eq. 9"  # the changes whose description says this
 
 Each change is (old line(s), new line(s), what it breaks): a sign, a factor, an axis, a threshold, a flag that does
@@ -551,19 +552,20 @@ MUTANTS = {
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--only", default="", help="comma-separated files of MUTANTS, e.g. rl.py,distill.py")
+    p.add_argument("--only", default="", help="comma-separated files of MUTANTS, e.g. rl.py,distill.py, or "
+                   "parts of them as MUTANTS names them, e.g. \"train.py (pretrain)\"")
     p.add_argument("--what", default="", help="only the changes whose description contains this, e.g. \"Eq. 9\"")
     p.add_argument("--timeout", type=int, default=1200, help="seconds one change's tests may run (default 1200)")
     args = p.parse_args(argv)
     only = [f for f in args.only.split(",") if f]
     file_of = {key: key.split()[0] for key in MUTANTS}          # "models.py (real backends)" -> models.py
-    unknown = [f for f in only if f not in file_of.values()]
+    unknown = [f for f in only if f not in file_of.values() and f not in MUTANTS]
     if unknown:
-        choices = ", ".join(dict.fromkeys(file_of.values()))
+        choices = ", ".join([*dict.fromkeys(file_of.values()), *(k for k in MUTANTS if k not in file_of.values())])
         p.error(f"--only: no changes listed for {', '.join(unknown)}; choose from {choices}")
     files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
-    todo = [(file_of[key], *m, tests) for key, (tests, ms) in MUTANTS.items() if not only or file_of[key] in only
-            for m in ms if args.what in m[2]]
+    todo = [(file_of[key], *m, tests) for key, (tests, ms) in MUTANTS.items()
+            if not only or file_of[key] in only or key in only for m in ms if args.what in m[2]]
     bad, t0 = [], time.time()
     with tempfile.TemporaryDirectory() as tree:
         for f in files:
