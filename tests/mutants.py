@@ -546,6 +546,8 @@ MUTANTS = {
         ("        mm = (enc.input_ids == self.ids[\"<|image_pad|>\"]).long()         # 0 text",
          "        mm = torch.zeros_like(enc.input_ids)         # 0 text",
          "the judge's image tokens marked as text"),
+        ('                                           "Yes", "No")]', '                                           "No", "Yes")]',
+         "the suitability filter's answer read the wrong way round"),
     ]),
 }
 
