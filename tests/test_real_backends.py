@@ -575,7 +575,8 @@ def test_tiny_vlm_judge_batches_like_single_items():
 def test_the_vlm_judges_frames_prompts_and_answer_tokens():
     """What VLMJudge asks and reads, with its logits stubbed (random weights answer nothing): the frames it shows
     are spread evenly from the first to the last; the training rewards ask Figs. 10-11's prompts and read "Yes" /
-    "No" (as the suitability filter's question, Fig. 12), the bench asks Figs. 15-17's with the agent and its task in their places and reads "1" / "0"."""
+    "No" (as the suitability filter's question, Fig. 12), the bench asks Figs. 15-17's with the agent and its task
+    in their places and reads "1" / "0"."""
     judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
     video = np.arange(6)[:, None, None, None].repeat(8, 1).repeat(8, 2).repeat(3, 3).astype(np.uint8) * 10
     assert [np.asarray(im)[0, 0, 0] for im in judge._frames(video)] == [0, 20, 30, 50]     # 4 of 6 frames
