@@ -644,7 +644,7 @@ def split_task(text: str) -> tuple[str, str]:
     """Any task in the paper's format "[agent]: instruction" -> (agent, instruction); ValueError otherwise.
     (parse_task above additionally checks the toy world's vocabulary.)"""
     m = _TASK_RE.match(text.strip())
-    if not m or not m["rest"].strip():
+    if not m or not m["agent"].strip():     # after strip() "rest" ends in a non-space; "[ ]" names no agent
         raise ValueError(f"task {text!r} is not of the form '[agent]: instruction'")
     return m["agent"].strip(), m["rest"].strip()
 

@@ -68,6 +68,12 @@ def test_unknown_word_is_a_clear_error(small):
         world.parse_task("[purple square]: move to the blue circle")
     with pytest.raises(ValueError, match="unknown instruction"):
         world.parse_task("[red square]: jump over the blue circle")
+    for task, msg in (("[red square]: move to the purple circle", "unknown target 'purple circle'"),
+                      ("[red square]: go to the middle edge", "unknown target 'middle'"),
+                      ("[red square]: centre the blue circle", "'centre the X' is for \\[first-person view\\] and only"),
+                      ("[first-person view]: move to the blue circle", "'centre the X' is for \\[first-person view\\]")):
+        with pytest.raises(ValueError, match=msg):
+            world.parse_task(task)
 
 
 @pytest.mark.parametrize("convs, embeddings", [(False, False), (True, False), (False, True)])
@@ -187,6 +193,15 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path, small):
     torch.save(state, str(tmp_path / "mismatch.pt"))
     with pytest.raises(ValueError, match="does not match"):
         models.load_checkpoint(str(tmp_path / "mismatch.pt"))
+
+
+def test_a_lora_target_that_matches_no_layer_is_a_clear_error():
+    model = models.make_model("toy", width=16, emb_dim=32, text_dim=32)
+    with pytest.raises(ValueError, match="LoRA target 'no_such_layer' matches no Linear layer"):
+        models.add_lora(model, target="no_such_layer")
+    with pytest.raises(ValueError, match="matches no Linear or Conv1d or Conv2d layer"):
+        models.add_lora(model, target="no_such_layer", convs=True)
+    assert not models.lora_parameters(model) and all(p.requires_grad for p in model.parameters())   # left as it was
 
 
 def test_unknown_backend_is_a_clear_error():

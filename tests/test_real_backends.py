@@ -3,6 +3,7 @@ interface, the time convention at the boundary, LoRA on video attention with the
 files, and one WMSD step through train.py. Skipped where the optional packages are absent (CI installs them)."""
 import json
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -600,6 +601,10 @@ def test_the_vlm_judges_frames_prompts_and_answer_tokens():
                           reward.BENCH_AGENT_PROMPT.format(eval_prompt=task, agent_name="red square",
                                                            agent_task_text="move right"),
                           reward.BENCH_CONSISTENCY_PROMPT]
+    # an answer word the tokenizer splits into pieces has no single logit to read: refused when the judge is built
+    vocab = {k: v for k, v in judge.tokenizer.get_vocab().items() if k != "Yes"}
+    with pytest.raises(ValueError, match="no single token 'Yes'"):
+        reward.VLMJudge(judge.model, SimpleNamespace(get_vocab=lambda: vocab), judge.image_processor)
 
 
 def test_an_offloaded_judge_visits_for_each_batch_and_gives_the_same_logits():

@@ -39,6 +39,8 @@ def test_reward_aggregation_on_a_hand_made_group():
     assert torch.allclose(rl.total_reward(rewards, {"task": 0.5, "distill": 2.0}), 0.5 * r_task + 2.0 * r_distill)
     no_judgment = {"task": r_task, "distill": torch.full((4,), float("nan"))}       # a weight of 0 leaves it out
     assert torch.equal(rl.total_reward(no_judgment, {"task": 1.0, "distill": 0.0}), r_task)
+    with pytest.raises(ValueError, match="every reward weight is zero"):                # not an empty stack's error
+        rl.total_reward(rewards, {"task": 0.0, "distill": 0.0})
     A_sum = rl.advantages(rewards, w, g, "sum", clip=None)
     # under plain sum the distillation reward barely moves the advantages ...
     assert torch.allclose(A_sum, torch.tensor([1.0, -1.0, 1.0, -1.0]), atol=1e-3)

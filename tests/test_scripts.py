@@ -3,6 +3,7 @@ import json
 import os
 
 import pytest
+import torch
 
 from conftest import ROOT, exit_2, run
 
@@ -104,7 +105,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--stage", "pretrain", "--relate", "--point_goal_only"], "it needs --point_weight > 0"),
                       (["--stage", "pretrain", "--relate_text"],
                        "--relate_text gives Relate its own text encoder: it needs --relate")):
-        assert msg in exit_2(train.main, argv, capsys), argv
+        assert msg in exit_2(train.parse_args, argv, capsys), argv    # the flag checks, no run started
     assert "pretrained with --relate" in exit_2(bench.main, ["--pointing", "--n", "2"], capsys)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
@@ -120,6 +121,26 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--gallery", g, "--executor", bad], "corrupt")):
         assert msg in exit_2(bench.main, argv, capsys), argv
     assert not g.exists()
+    no_gpu = not torch.cuda.is_available()
+    for argv, msg in ((["--n", "0"], "--n must be >= 1"), (["--n", "201"], "--n must lie in 1..200"),
+                      (["--batch", "0"], "--batch must be >= 1"), (["--model", "ltx2"], "--model ltx2 needs --model_path"),
+                      *([(["--model", "hunyuan15-random"], "it needs a CUDA GPU"),
+                         (["--judge", "qwen-vl-random"], "it needs a CUDA GPU")] if no_gpu else []),
+                      (["--judge", "qwen-vl"], "--judge qwen-vl needs --judge_path"),
+                      (["--offload_judge"], "--offload_judge is for a VLM judge's weights"),
+                      (["--offload_text"], "--offload_text is for a real model's text encoder"),
+                      (["--lora", bad], "--lora loads a real model's Executor"),
+                      (["--model", "ltx2-tiny", "--checkpoint", bad], "--checkpoint is a toy model file"),
+                      (["--dataset", tmp_path / "d.jsonl", "--condition", "oracle"], "needs the toy bench's scenes"),
+                      (["--error_rate", "1.5"], "--error_rate must lie in [0, 1]"),
+                      (["--steps", "0"], "--steps must be >= 1"), (["--guidance", "-1"], "--guidance must be >= 0"),
+                      (["--guidance", "2", "--handoff", "task,vlm"], "--guidance applies to one evaluation"),
+                      (["--rank_rdistill", "--group", "1"], "--group must be >= 2"),
+                      (["--handoff", "task,vlm", "--rank_rdistill"], "two different diagnostics"),
+                      (["--relate_probe", "zeroed", "--handoff", "task,vlm"], "--relate_probe alters one evaluation"),
+                      (["--handoff", "task,vlm,oracle"], "--handoff wants A,B")):
+        # --n 2 first: a check that let its value through evaluates two pairs and the test fails soon after
+        assert msg in exit_2(bench.main, ["--n", "2", *argv], capsys), argv
 
 
 def test_each_bench_condition_prompts_with_its_own_text():

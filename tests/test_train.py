@@ -93,6 +93,16 @@ def test_two_processes_make_the_one_process_update(tiny_ckpt, tmp_path):
     assert any(a[k].abs().max() > 0 for k in a if "lora_B" in k)                         # ... and it did move
 
 
+def test_a_batch_shards_into_equal_contiguous_shares_or_is_refused(monkeypatch):
+    """train._shard: process r of w takes rows [r n/w, (r+1) n/w); a batch that does not divide is a clear error,
+    not a shard that drops rollouts."""
+    monkeypatch.setattr(train, "_world", lambda: 3)
+    monkeypatch.setattr(train, "_rank", lambda: 2)
+    assert train._shard(12) == (8, 4)
+    with pytest.raises(ValueError, match=r"rollouts per step \(8\) must be divisible by the number of processes \(3\)"):
+        train._shard(8)
+
+
 def _args(tiny_ckpt, tmp_path, **kw):
     a = train.parse_args([*TINY, "--init", tiny_ckpt, "--run_dir", str(tmp_path), *sum(
         ([f"--{k}", str(v)] for k, v in kw.items()), [])])
@@ -293,6 +303,9 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                                           + "\n" + json.dumps({"image": "f.png", "task": task, "description": desc}) + "\n")
         err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--dataset", tmp_path / "d.jsonl", "--run_dir", out], capsys)
         assert "d.jsonl line 2" in err and msg in err and not out.exists(), err
+    # parse_args holds every flag check; called alone, a check that let its bad value through returns (the test fails
+    # at once) where train.main would start a run
+    no_gpu = not torch.cuda.is_available()
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--group_size", "1"], "--group_size must be >= 2"),
                       (["--beta_d", "-1"], "--beta_d must be >= 0"), (["--sampler", "euler"], "--sampler: unknown"),
                       (["--adv_agg", "mean"], "--adv_agg: unknown"),
@@ -311,7 +324,7 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--model", "ltx2-tiny", "--lora_embeddings"], "are for the toy; a real backend"),
                       (["--model", "ltx2-tiny", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       (["--stage", "distill", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
-                      *([] if torch.cuda.is_available() else [(["--toy_gpu"], "torch sees no GPU")]),
+                      *([(["--toy_gpu"], "torch sees no GPU")] if no_gpu else []),
                       (["--micro_batch", "-1"], "--micro_batch must be >= 0"),
                       (["--stage", "distill", "--micro_batch", "4"], "--micro_batch splits the rl stage's"),
                       (["--grad_checkpoint"], "--grad_checkpoint is for a real model's transformer"),
@@ -323,9 +336,32 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--executor_ema", "0.9", "--executor_ema_schedule", "cosine"],
                        "--executor_ema_schedule: unknown"),
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
-                       "--distill_motion_weight weighs Eq. 4")):
-        err = exit_2(train.main, [*argv, "--run_dir", out], capsys)
-        assert msg in err and not out.exists(), (argv, err)
+                       "--distill_motion_weight weighs Eq. 4"),
+                      (["--model", "ltx2-tiny", "--distill_motion_weight", "2"], "first frame: toy model only"),
+                      (["--lambda_task", "0", "--lambda_distill", "0", "--lambda_cons", "0"], "at least one of"),
+                      (["--sampler", "sde", "--noise_level", "0"], "--noise_level must be > 0 for SDE rollouts"),
+                      (["--trainer", "flow-grpo", "--noise_level", "0"], "--noise_level must be > 0 for SDE"),
+                      (["--error_rate", "1.5"], "--error_rate must lie in [0, 1]"),
+                      (["--error_rate", "-0.1"], "--error_rate must lie in [0, 1]"),
+                      *([(["--model", "ltx2-random"], "it needs a CUDA GPU"),
+                         (["--judge", "qwen-vl-random"], "it needs a CUDA GPU")] if no_gpu else []),
+                      (["--judge", "qwen-vl"], "--judge qwen-vl needs --judge_path"),
+                      (["--stage", "distill", "--judge", "qwen-vl-tiny"], "wired into the rl stage only"),
+                      (["--stage", "distill", "--model", "ltx2-tiny"], "wired into the rl stage only"),
+                      (["--distill_reward", "per_step"], "--distill_reward per_step gives each transition"),
+                      (["--trainer", "flow-grpo", "--distill_reward", "per_step", "--lambda_distill", "0"],
+                       "--distill_reward per_step gives each transition"),
+                      (["--demonstrator", "executor", "--alternate", "2"], "--demonstrator executor is the rl stage's"),
+                      (["--stage", "distill", "--demonstrator", "executor"], "--demonstrator executor is the rl"),
+                      (["--offload_judge"], "--offload_judge is for a VLM judge's weights"),
+                      (["--eval_n", "201"], "--eval_n must be at most 200"),
+                      (["--p_vague", "0.6", "--p_empty", "0.5"], "must be >= 0 and sum to at most 1"),
+                      (["--p_goal", "-0.1"], "must be >= 0 and sum to at most 1"),
+                      (["--ema", "1"], "--ema must lie in [0, 1)"),
+                      (["--relate", "--point_weight", "-1"], "--point_weight must be >= 0"),
+                      (["--lr", "0"], "--lr must be > 0")):
+        err = exit_2(train.parse_args, argv, capsys)
+        assert msg in err, (argv, err)
 
 
 def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settings(tiny_ckpt, tmp_path, monkeypatch):
@@ -733,7 +769,8 @@ def test_eval_dataset_is_the_bench_and_must_be_held_out(tiny_ckpt, tmp_path, mon
     for argv, msg in ((["--dataset", data, "--eval_dataset", data], "the bench must be held out"),
                       (["--eval_dataset", held, "--eval_n", 4], "fewer than --eval_n 4"),
                       (["--stage", "distill", "--eval_dataset", held], "--eval_dataset is the rl stage's bench")):
-        err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, *argv, "--run_dir", tmp_path / "never"], capsys)
+        err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "1", *argv, "--run_dir", tmp_path / "never"],
+                     capsys)
         assert msg in err and not (tmp_path / "never").exists(), (argv, err)
 
 

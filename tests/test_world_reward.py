@@ -1,5 +1,7 @@
 """world.py and the judges of reward.py on simulator-made videos, correct and with hand-made faults; the VLM
 score from its logits."""
+import json
+
 import numpy as np
 import pytest
 
@@ -47,6 +49,28 @@ def test_error_rates_are_laid_over_one_set_of_pairs():
         assert [(p.task.text, p.d_vlm, p.error) for p in world.make_pairs(40, 5, e)] == direct(40, 5, e)
     wrong = lambda e: {i for i, p in enumerate(world.make_pairs(40, 5, e)) if p.error}   # noqa: E731
     assert wrong(0.0) == set() and wrong(0.3) and wrong(0.3) <= wrong(0.7)
+
+
+def test_a_bad_dataset_file_is_one_clear_error(tmp_path):
+    """world.load_dataset: a missing file, a row without its description or with an image that is not there, a file
+    with no rows -- each one ValueError naming the file (and the line)."""
+    p = world.make_pairs(1, seed=0, error_rate=0.0)[0]
+    from PIL import Image
+    Image.fromarray(p.frame0).save(tmp_path / "f.png")
+    good = json.dumps({"image": "f.png", "task": p.task.text, "description": p.d_oracle})
+    for rows, msg in (([], "has no rows"),
+                      ([good, json.dumps({"image": "f.png", "task": p.task.text})], "line 2: missing or empty description"),
+                      ([good, good.replace("f.png", "g.png")], "line 2: image .*g.png' does not exist")):
+        (tmp_path / "d.jsonl").write_text("".join(r + "\n" for r in rows))
+        with pytest.raises(ValueError, match=msg):
+            world.load_dataset(str(tmp_path / "d.jsonl"))
+    with pytest.raises(ValueError, match="does not exist"):
+        world.load_dataset(str(tmp_path / "missing.jsonl"))
+    for task in ("[ ]: move left", "[red square]:  ", "red square: move left"):
+        with pytest.raises(ValueError, match="is not of the form"):
+            world.split_task(task)
+    (tmp_path / "d.jsonl").write_text(good + "\n")
+    assert [r["line"] for r in world.load_dataset(str(tmp_path / "d.jsonl"))] == [1]
 
 
 def test_random_scenes_have_sprites_in_view_a_pixel_apart_that_read_back():
