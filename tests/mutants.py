@@ -35,7 +35,7 @@ SCORES = [f"tests/test_report.py::test_{name}" for name in (
 REPORT = [f"tests/test_report.py::test_{name}" for name in (
     "denominators_count_discarded_judgments", "a_finished_run_is_reused_only_for_the_same_command_and_base",
     "the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_rebuilt",
-    "each_experiment_sets_what_its_figure_says_it_does")]
+    "each_experiment_sets_what_its_figure_says_it_does", "report_bad_input")]
 
 BAD_INPUT = ["tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written",
              "tests/test_scripts.py::test_bad_input_gives_one_clear_error",
@@ -202,6 +202,14 @@ MUTANTS = {
         ('        mask = None if key_mask is None else key_mask[:, None, None, :]',
          '        mask = None',
          'text attention over the padding'),
+        ('        if len(words) > self.max_len:',
+         '        if False:', 'a toy prompt over max_len words accepted'),
+        ('    if not names:\n        raise ValueError(f"LoRA target',
+         '    if False:\n        raise ValueError(f"LoRA target', 'a LoRA target that matches nothing accepted'),
+        ('    if lora_parameters(model):\n        raise ValueError("copy_for_adapter',
+         '    if False:\n        raise ValueError("copy_for_adapter', 'copy_for_adapter after adapters accepted'),
+        ('    if not os.path.isfile(path):\n        raise FileNotFoundError(f"checkpoint',
+         '    if False:\n        raise FileNotFoundError(f"checkpoint', 'a missing checkpoint called corrupt'),
     ]),
     "reward.py": (JUDGES, [
         ('        s = -1e-3  # the boundary counts as "no"', "        s = 1e-3", "the boundary a yes"),
@@ -398,6 +406,8 @@ MUTANTS = {
         ('    todo, dirs, base = [], {}, file_digest(init or models.SHIPPED_BASE)',
          '    todo, dirs, base = [], {}, file_digest(models.SHIPPED_BASE)',
          'a run from another --init base reused'),
+        ('    if a.jobs < 1:',
+         '    if False:', "report.py's --jobs 0 accepted"),
     ]),
     "train.py": (["tests/test_train.py"], [
         ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",
@@ -686,22 +696,6 @@ MUTANTS = {
         ('    if not m:\n        raise ValueError(f"{d!r} is not a description',
          '    if False:\n        raise ValueError(f"{d!r} is not a description',
          'instruction_form of a non-description'),
-    ]),
-    "models.py (bad input)": (["tests/test_models.py",
-                              "tests/test_real_backends.py::test_a_lora_file_brings_its_runs_rank_and_alpha",
-                              "tests/test_real_backends.py::test_missing_packages_and_weights_give_clear_errors"], [
-        ('        if len(words) > self.max_len:',
-         '        if False:', 'a toy prompt over max_len words accepted'),
-        ('    if not names:\n        raise ValueError(f"LoRA target',
-         '    if False:\n        raise ValueError(f"LoRA target', 'a LoRA target that matches nothing accepted'),
-        ('    if lora_parameters(model):\n        raise ValueError("copy_for_adapter',
-         '    if False:\n        raise ValueError("copy_for_adapter', 'copy_for_adapter after adapters accepted'),
-        ('    if not os.path.isfile(path):\n        raise FileNotFoundError(f"checkpoint',
-         '    if False:\n        raise FileNotFoundError(f"checkpoint', 'a missing checkpoint called corrupt'),
-    ]),
-    "report.py (bad input)": (["tests/test_report.py::test_report_bad_input"], [
-        ('    if a.jobs < 1:',
-         '    if False:', "report.py's --jobs 0 accepted"),
     ]),
 }
 

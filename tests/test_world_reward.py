@@ -53,7 +53,8 @@ def test_error_rates_are_laid_over_one_set_of_pairs():
 
 def test_a_bad_dataset_file_is_one_clear_error(tmp_path):
     """world.load_dataset: a missing file, a row without its description or with an image that is not there, a file
-    with no rows -- each one ValueError naming the file (and the line)."""
+    with no rows -- each one ValueError naming the file (and the line); split_task, which reads each row's task, and
+    a task with a blank agent or instruction or without its brackets."""
     p = world.make_pairs(1, seed=0, error_rate=0.0)[0]
     from PIL import Image
     Image.fromarray(p.frame0).save(tmp_path / "f.png")
