@@ -209,6 +209,14 @@ def test_fake_score_starts_as_the_base_with_only_its_own_lora_trainable(lora_mod
     assert {n for n, p in fake.named_parameters() if p.requires_grad} == {n for n, _ in fake.named_parameters()
                                                                         if "lora_" in n}
     _perturb(m, 0)
+    plain = models.make_model("toy", width=16, emb_dim=32, text_dim=32)      # a base without adapters gets its own
+    nn.init.normal_(plain.out.weight, std=0.05)
+    fake = distill.make_fake_score(plain, rank=2)
+    trainable = [p for p in fake.parameters() if p.requires_grad]
+    assert trainable and sum(p.numel() for p in trainable) == sum(p.numel() for p in models.lora_parameters(fake))
+    assert not models.lora_parameters(plain)                                  # the base itself is left as it was
+    with torch.no_grad():
+        torch.testing.assert_close(fake(x0, t, c_E), plain(x0, t, c_E))
 
 
 def test_alg2s_teacher_takes_the_demonstrators_place(lora_model):

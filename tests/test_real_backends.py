@@ -1,6 +1,7 @@
 """The LTX-2 and HunyuanVideo-1.5 backends (diffusers + peft) on tiny random-weight models of the real classes: the
 interface, the time convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA
 files, and one WMSD step through train.py. Skipped where the optional packages are absent (CI installs them)."""
+import inspect
 import json
 import re
 from types import SimpleNamespace
@@ -186,6 +187,9 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
     t = torch.tensor([0.3, 0.6])
     with torch.no_grad():
         base = m(x0, t, c_E)
+    for toy_only in ({"convs": True}, {"embeddings": True}):     # Table 3's LoRA is on Linear layers only
+        with pytest.raises(ValueError, match="LoRA on convolutions or embeddings is for the toy"):
+            models.add_lora(m, 4, 8.0, **toy_only)
     names = models.add_lora(m, 4, 8.0)
     assert names and all(re.fullmatch(LORA_NAMES[backend], n) for n in names)
     with torch.no_grad():
@@ -219,6 +223,8 @@ def test_lora_on_video_attention_and_the_demonstrator_is_adapters_off(backend, r
     (tmp_path / "bad.pt").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="corrupt"):
         models.load_lora(m, str(tmp_path / "bad.pt"))
+    with pytest.raises(FileNotFoundError, match="LoRA file .*nope.pt' does not exist"):
+        models.load_lora(m, str(tmp_path / "nope.pt"))
     # a file from another model: load_state_dict(strict=False) would skip its weights without a word
     torch.save({"lora": {"blocks.99.lora_A.weight": torch.zeros(1)}, "meta": {}}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="1 LoRA weights have no place in this model"):
@@ -265,6 +271,52 @@ def test_the_loaders_checkpoint_and_offload_when_asked(flags, monkeypatch):
     with pytest.raises(SystemExit):
         bench.main(["--model", "ltx2-tiny", "--judge", "qwen-vl-tiny"] + ["--offload_text", "--offload_judge"] * flags)
     assert (seen[0].offload_text, seen[0].offload_judge) == (flags, flags)
+
+
+PARTS = {models.LTX2Video: ("LTX2ImageToVideoPipeline", ["transformer", "vae", "text_encoder", "tokenizer",
+                                                           "connectors"], {"max_sequence_length": 16}),
+         models.HunyuanVideo15: ("HunyuanVideo15ImageToVideoPipeline",
+                                 ["transformer", "vae", "text_encoder", "tokenizer", "text_encoder_2", "tokenizer_2",
+                                  "image_encoder", "feature_extractor"],
+                                 {"max_sequence_length": 16, "crop_start": 0, "byt5_max_length": 16})}
+
+
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
+def test_from_pretrained_loads_every_component_from_its_pipelines_folder(cls, tmp_path):
+    """from_pretrained, the path real weights take (they cannot be downloaded here): a tiny model's components,
+    saved each under the name diffusers' own image-to-video pipeline gives it (the folders of a snapshot), load back
+    into the same model -- the same condition and velocity, bit for bit, in float32 -- given the tiny model's text
+    settings (the defaults are the pipeline's: LTX-2 pads a prompt to 1024 tokens, and its connectors' registers
+    make the velocity depend on that length)."""
+    import diffusers
+    pipeline, names, text = PARTS[cls]
+    assert set(names) <= set(inspect.signature(getattr(diffusers, pipeline).__init__).parameters)
+    m, f0, c_E, _ = _tiny(cls)
+    for name in names:
+        getattr(m, name).save_pretrained(str(tmp_path / name))
+    loaded = cls.from_pretrained(str(tmp_path), frames=m.frames, height=m.height, width=m.width,
+                                 dtype=torch.float32, **text)
+    pairs = world.make_pairs(2, seed=0, error_rate=0.0)
+    c = loaded.condition(f0, [p.task.text for p in pairs])
+    assert c.keys() == c_E.keys() and all(torch.equal(c[k], c_E[k]) for k in c)
+    x = torch.randn(2, *m.latent_shape(), generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([0.3, 0.6])
+    with torch.no_grad():
+        assert torch.equal(loaded(x, t, c), m(x, t, c_E))
+
+
+def test_the_vlm_judge_loads_from_a_directory(tmp_path):
+    """VLMJudge.from_pretrained (--judge qwen-vl --judge_path): a tiny judge's model, tokenizer and image processor
+    saved to one directory load back into a judge with the same logits for the same videos and prompts."""
+    judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
+    for part in (judge.model, judge.tokenizer, judge.image_processor):
+        part.save_pretrained(str(tmp_path))
+    loaded = reward.VLMJudge.from_pretrained(str(tmp_path), frames=judge.frames, batch=judge.batch)
+    pairs = world.make_pairs(3, seed=0, error_rate=0.0)
+    videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in pairs])
+    prompts = [reward.TASK_REWARD_PROMPT.format(instruction=p.task.text, agent_name=world.split_task(p.task.text)[0])
+               for p in pairs]
+    assert np.array_equal(loaded.logits(videos, prompts), judge.logits(videos, prompts))
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
@@ -682,7 +734,8 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     answer = ("1. Task 1: [Driver in racing suit]: Press the red button on the steering wheel.\n"
               "Description 1: The driver's right hand moves slightly forward and presses the red button.\n"
               "2. Task 2: no brackets here\nDescription 2: dropped\n"
-              "3. Task 3: [First-person view]: Align the bumper with the curb. Description 3: The car drifts left.")
+              "3. Task 3: [First-person view]: Align the bumper with the curb. Description 3: The car drifts left.\n"
+              "4. Task 4: [ ]: Wave.\nDescription 4: dropped: brackets, but no agent in them")
     pairs = world.parse_task_solutions(answer)
     assert [t for t, _ in pairs] == ["[Driver in racing suit]: Press the red button on the steering wheel.",
                                      "[First-person view]: Align the bumper with the curb."]

@@ -179,6 +179,37 @@ def test_each_experiment_sets_what_its_figure_says_it_does():
     assert {"sft", "paired"} <= set(parse("distill").variant.split(","))
 
 
+def test_a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept(tmp_path, monkeypatch, capsys):
+    """report.py when one train.py run fails: exit status 1, one error naming the run and the last 8 lines of its
+    log; every other run is recorded as finished, so the next report runs only the failed one. train.py is not run:
+    a stand-in writes what a run leaves, and fails for one experiment."""
+    failing, calls = sorted(report.EXPERIMENTS)[1], []
+
+    def train_py(cmd, stdout=None, **kw):
+        stage, d = cmd[cmd.index("--stage") + 1], cmd[cmd.index("--run_dir") + 1]
+        calls.append(os.path.basename(d))
+        if os.path.basename(d) == f"{failing}_s0":
+            stdout.write("".join(f"log line {i}\n" for i in range(1, 11)))
+            return types.SimpleNamespace(returncode=3)
+        open(os.path.join(d, report.SUMMARY[stage]), "w").write("{}")
+        return types.SimpleNamespace(returncode=0)
+
+    monkeypatch.setattr(report.subprocess, "run", train_py)
+    out = str(tmp_path / "out")
+    with pytest.raises(SystemExit) as e:
+        report.main([out, "--quick", "--seeds", "0", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and err.startswith(f"error: run {failing} seed 0 failed (exit 3); "), err
+    assert err.split("log.txt ends:\n")[1].split() == [w for i in range(3, 11) for w in ("log", "line", str(i))]
+    assert len(calls) == len(report.EXPERIMENTS) and not os.path.exists(os.path.join(out, "report.md"))
+    done = {n for n in report.EXPERIMENTS if os.path.isfile(os.path.join(out, "runs", f"{n}_s0", "report_cmd.json"))}
+    assert done == set(report.EXPERIMENTS) - {failing}
+    calls.clear()
+    failing = None
+    report.run_experiments(out, [0], "quick", jobs=1)
+    assert calls == [f"{sorted(report.EXPERIMENTS)[1]}_s0"]
+
+
 def test_report_bad_input(tmp_path):
     r = run("report.py", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
     assert r.returncode == 2 and "does not exist" in r.stderr

@@ -175,6 +175,8 @@ def test_first_inner_step_ratio_is_one():
     for name in ("flow-grpo", "awm"):
         _, info = rl.OBJECTIVES[name](model, ro, A, cfg)
         assert abs(info["ratio_mean"] - 1) < 1e-6
+    with pytest.raises(ValueError, match="unknown AWM ratio 'nope'"):
+        rl.awm(model, ro, A, rl.RLConfig(ratio="nope"))
 
 
 def test_per_step_advantages_weigh_each_transition_and_only_transition_objectives_take_them():

@@ -145,19 +145,22 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
 
 def test_each_bench_condition_prompts_with_its_own_text():
     """bench.prompts_for: T, the toy VLM's D (the plan it describes, wrong where it erred), the error-free D (the
-    solution's), the empty prompt; the instruction forms rewrite those Ds."""
+    solution's), a vague caption of the solution's motion, the empty prompt, T's words as a goal caption; the
+    instruction and direction forms rewrite those Ds. Every condition bench.py offers is here."""
     import bench
     import world
     pairs = world.bench_pairs(0.3)[:40]
     assert any(p.error for p in pairs)
-    assert bench.prompts_for(pairs, "task") == [p.task.text for p in pairs]
-    assert bench.prompts_for(pairs, "vlm") == [world.describe(p.scene, p.plan_vlm) for p in pairs]
-    assert bench.prompts_for(pairs, "oracle") == [world.describe(p.scene, p.plan_oracle) for p in pairs]
-    assert bench.prompts_for(pairs, "empty") == [""] * len(pairs)
-    assert bench.prompts_for(pairs, "instruction") == [world.instruction_form(world.describe(p.scene, p.plan_vlm))
-                                                       for p in pairs]
-    assert bench.prompts_for(pairs, "oracle_instruction") == [
-        world.instruction_form(world.describe(p.scene, p.plan_oracle)) for p in pairs]
+    want = {"task": lambda p: p.task.text, "vlm": lambda p: world.describe(p.scene, p.plan_vlm),
+            "oracle": lambda p: world.describe(p.scene, p.plan_oracle),
+            "vague": lambda p: world.vague_caption(p.scene, p.plan_oracle), "empty": lambda p: "",
+            "goal": lambda p: world.goal_caption(p.task),
+            "instruction": lambda p: world.instruction_form(world.describe(p.scene, p.plan_vlm)),
+            "oracle_instruction": lambda p: world.instruction_form(world.describe(p.scene, p.plan_oracle)),
+            "oracle_direction": lambda p: world.direction_form(world.describe(p.scene, p.plan_oracle))}
+    assert sorted(want) == sorted(bench.CONDITIONS)
+    for condition, prompt in want.items():
+        assert bench.prompts_for(pairs, condition) == [prompt(p) for p in pairs], condition
 
 
 def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):

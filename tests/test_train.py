@@ -2,6 +2,7 @@
 raises, a NaN), atomic state writes, and bad input."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -196,7 +197,9 @@ def test_rl_step_counts_the_still_rollouts_and_how_far_a_points_to_them(tiny_ckp
     assert rec["still_push"] != pytest.approx(bench.pull(torch.tensor(rec["A"]), motion, groups))
 
 
-def test_a_nan_stops_the_run_naming_step_and_quantity(tiny_ckpt, tmp_path, monkeypatch):
+def test_a_nan_stops_the_run_naming_step_and_quantity(tiny_ckpt, tmp_path, monkeypatch, capsys):
+    """The fault names its step and quantity, the state stays at the last good step, and train.py ends in one line
+    with exit status 1 (not 2: the settings were fine)."""
     real, calls = train.distill.distill_reward, {"n": 0}
 
     def poisoned(*a, **k):
@@ -205,8 +208,15 @@ def test_a_nan_stops_the_run_naming_step_and_quantity(tiny_ckpt, tmp_path, monke
         return r * float("nan") if calls["n"] == 2 else r
 
     monkeypatch.setattr(train.distill, "distill_reward", poisoned)
-    with pytest.raises(train.TrainingFault, match=r"step 2: reward r_distill is not finite.*state.pt is intact"):
-        train.rl_stage(_args(tiny_ckpt, tmp_path, steps=3))
+    threads = torch.get_num_threads()
+    try:
+        with pytest.raises(SystemExit) as e:
+            train.main([*TINY, "--init", tiny_ckpt, "--run_dir", str(tmp_path), "--steps", "3"])
+    finally:
+        torch.set_num_threads(threads)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 1 and len(err) == 1, (e.value.code, err)
+    assert re.match(r"error: step 2: reward r_distill is not finite.*state.pt is intact", err[0]), err
     assert torch.load(tmp_path / "state.pt", weights_only=True)["step"] == 1          # the last good state
 
 
@@ -704,6 +714,48 @@ def test_judge_rollouts_solves_with_both_judges_and_an_unjudged_rollout_is_inval
     assert out["solved"][:4].tolist() == [1.0, 0.0, 0.0, 0.0] and out["solved"][4].isnan()
     assert out["invalid"].tolist() == [False, False, False, True, True]
     assert out["task"][:4].tolist() == [1.0, 1.0, -1.0, 1.0] and out["consistency"][3].isnan()
+
+
+def test_a_judge_that_raises_is_counted_and_its_rollouts_skipped(monkeypatch):
+    """judge_rollouts never lets a judge's exception stop the run: the rollout is invalid (NaN score) and its
+    judge_errors counts the judges that raised -- the toy judges per video, a VLM judge per batch."""
+    yes = train.reward.Judgment(True, 1.0)
+
+    def raises_on(bad):
+        def judge(r, *t):
+            if r == bad:
+                raise RuntimeError("judge down")
+            return yes
+        return judge
+
+    monkeypatch.setattr(train, "JUDGE", None)
+    monkeypatch.setattr(train.reward, "read_video", lambda v: v)
+    monkeypatch.setattr(train.reward, "judge_task", raises_on("task fails"))
+    monkeypatch.setattr(train.reward, "judge_consistency", raises_on("consistency fails"))
+    out = train.judge_rollouts(["fine", "task fails", "consistency fails"], ["t"] * 3)
+    assert out["judge_errors"].tolist() == [0, 1, 1] and out["invalid"].tolist() == [False, True, True]
+    assert out["task"][0] == 1 and out["task"][1].isnan() and out["task"][2] == 1 and out["consistency"][2].isnan()
+
+    class VLM:                               # a batched judge: one of its two questions raises for the whole batch
+        def __init__(self, down):
+            self.down = down
+
+        def task_reward(self, videos, tasks):
+            if "task" in self.down:
+                raise RuntimeError("judge down")
+            return [yes] * len(tasks)
+
+        def consistency_reward(self, videos):
+            if "consistency" in self.down:
+                raise RuntimeError("judge down")
+            return [yes] * len(videos)
+
+    for down, errors in (((), 0), (("task",), 1), (("consistency",), 1), (("task", "consistency"), 2)):
+        monkeypatch.setattr(train, "JUDGE", VLM(down))
+        out = train.judge_rollouts(np.zeros((2, 3, 16, 16, 3), np.uint8), ["t", "t"])
+        assert out["judge_errors"].tolist() == [errors] * 2 and out["invalid"].tolist() == [bool(down)] * 2, down
+        assert out["task"].isnan().all() == ("task" in down) and out["solved"].isnan().all() == ("task" in down)
+        assert out["consistency"].isnan().all() == ("consistency" in down), down
 
 
 def test_inner_epochs_update_again_on_the_same_rollouts(tiny_ckpt, tmp_path, monkeypatch):

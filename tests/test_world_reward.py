@@ -70,8 +70,8 @@ def test_a_bad_dataset_file_is_one_clear_error(tmp_path):
     for task in ("[ ]: move left", "[red square]:  ", "red square: move left"):
         with pytest.raises(ValueError, match="is not of the form"):
             world.split_task(task)
-    (tmp_path / "d.jsonl").write_text(good + "\n")
-    assert [r["line"] for r in world.load_dataset(str(tmp_path / "d.jsonl"))] == [1]
+    (tmp_path / "d.jsonl").write_text("\n" + good + "\n  \n" + good + "\n")     # blank lines are skipped, and counted
+    assert [r["line"] for r in world.load_dataset(str(tmp_path / "d.jsonl"))] == [2, 4]
 
 
 def test_random_scenes_have_sprites_in_view_a_pixel_apart_that_read_back():
@@ -426,11 +426,32 @@ def test_first_person_pan():
 
 def test_no_judgment_is_none_not_a_crash():
     v = _video(SCENE, GOOD)
-    assert reward.judge_task(v, "[yellow square]: move to the blue circle").yes is None  # agent not in the scene
+    for judge in (reward.judge_task, reward.judge_agent, reward.judge_task_reward):
+        assert judge(v, "[yellow square]: move to the blue circle") == reward.INVALID, judge  # agent not in the scene
     assert reward.judge_consistency(v[:, :8]).yes is None                                 # wrong shape
     bad = v.astype(float)
     bad[2, 0, 0, 0] = np.nan
     assert all(j.yes is None for j in reward.judge_all(bad, TASK).values())
+    assert reward.judge_task_reward(bad, TASK) == reward.INVALID
+
+
+def test_a_video_at_a_multiple_of_the_worlds_size_is_judged_as_the_world(bench):
+    """A real backend renders the toy world at its own resolution (LTX-2 at 32x32): read_video block-averages a
+    video k times the world's 16x16 back to it, so each judge says what it says of the world's own video. Each k x k
+    block here is the world's pixel give or take 8 levels in a checkerboard (within [0, 255]), which only the block's
+    mean undoes."""
+    for p in bench[:24]:
+        for plan in (p.plan_oracle, Plan(None)):
+            v = _video(p.scene, plan)
+            want = reward.judge_all(v, p.task.text)
+            for k in (2, 4):
+                i, j = np.indices((16 * k, 16 * k))
+                up = lambda a: np.repeat(np.repeat(a, k, axis=1), k, axis=2)          # noqa: E731
+                amp = up(np.where((v >= 8) & (v <= 247), 8.0, 0.0))
+                big = up(v) + amp * np.where((i + j) % 2, 1, -1)[..., None]
+                assert np.array_equal(reward.read_video(big).frames, v), (p.task.text, k)
+                assert reward.judge_all(big, p.task.text) == want, (p.task.text, k)
+    assert reward.read_video(np.zeros((6, 24, 24, 3), np.uint8)) is None     # not a multiple: malformed
 
 
 def test_vlm_score_is_log_p_yes_minus_log_p_no():
