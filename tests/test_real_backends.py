@@ -799,6 +799,10 @@ def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     assert counts["low aesthetic score"] == 1 and counts["unsuitable"] == 0
     with pytest.raises(FileNotFoundError, match="aesthetic scorer weights not found"):
         world.CLIPAesthetic.from_pretrained(str(tmp_path / "no_clip"), str(tmp_path / "no_head.pt"))
+    scorer.clip.save_pretrained(str(tmp_path / "clip"))        # from local paths: a CLIP directory and the head's file
+    scorer.processor.save_pretrained(str(tmp_path / "clip"))
+    torch.save(scorer.head.state_dict(), tmp_path / "head.pt")
+    assert np.array_equal(world.CLIPAesthetic.from_pretrained(str(tmp_path / "clip"), str(tmp_path / "head.pt"))(imgs), s)
 
 
 def test_a_real_models_rollout_gif_is_thinned_not_enlarged(tmp_path):
