@@ -109,7 +109,8 @@ MUTANTS = {
          "the fake score training the base"),
         ('        if len(ks) == 0:\n',
          '        if False:\n', 'an empty state window'),
-        ('    if not any(isinstance(m, models.LoRA) for m in fake.modules()):\n        models.add_lora(fake, rank, alpha)',
+        ('    if not any(isinstance(m, models.LoRA) for m in fake.modules()):\n'
+         '        models.add_lora(fake, rank, alpha)',
          '    if False:\n        models.add_lora(fake, rank, alpha)',
          'the fake score of a base without adapters left without its own'),
     ]),
@@ -268,8 +269,14 @@ MUTANTS = {
         ('    if v.ndim == 4 and v.shape[3] == 3 and v.shape[1:3] != (H, W)',
          '    if False and v.ndim == 4 and v.shape[3] == 3 and v.shape[1:3] != (H, W)',
          "a video at a multiple of the world's size not read"),
-        ('    if task is None:\n        return INVALID\n    tracks = {s.name: _track(r, s.name) for s in r.sprites}\n    if task.agent',
-         '    if False:\n        return INVALID\n    tracks = {s.name: _track(r, s.name) for s in r.sprites}\n    if task.agent',
+        ('    if task is None:\n'
+         '        return INVALID\n'
+         '    tracks = {s.name: _track(r, s.name) for s in r.sprites}\n'
+         '    if task.agent',
+         '    if False:\n'
+         '        return INVALID\n'
+         '    tracks = {s.name: _track(r, s.name) for s in r.sprites}\n'
+         '    if task.agent',
          'the agent judge judging a task whose agent is not in the scene'),
         ('    if jt.score is None or ja.score is None:\n        return INVALID',
          '    if False:\n        return INVALID',
@@ -596,17 +603,25 @@ MUTANTS = {
         ('        if convs or embeddings:\n            raise ValueError("LoRA on convolutions',
          '        if convs:\n            raise ValueError("LoRA on convolutions',
          "a real backend's LoRA on embeddings accepted"),
-        ('    except FileNotFoundError:\n        raise FileNotFoundError(f"LoRA file {path!r} does not exist") from None\n',
+        ('    except FileNotFoundError:\n'
+         '        raise FileNotFoundError(f"LoRA file {path!r} does not exist") from None\n',
          '',
          'a missing LoRA file called corrupt'),
-        ('                   max_sequence_length=max_sequence_length)\n\n    @classmethod\n    def tiny(cls, words: list[str], frames: int = 5,',
-         '                   max_sequence_length=1024)\n\n    @classmethod\n    def tiny(cls, words: list[str], frames: int = 5,',
+        ('                   max_sequence_length=max_sequence_length)\n'
+         '\n'
+         '    @classmethod\n'
+         '    def tiny(cls, words: list[str], frames: int = 5,',
+         '                   max_sequence_length=1024)\n'
+         '\n'
+         '    @classmethod\n'
+         '    def tiny(cls, words: list[str], frames: int = 5,',
          "LTX-2's from_pretrained ignoring its max_sequence_length"),
-        ('                   max_sequence_length=max_sequence_length, crop_start=crop_start, byt5_max_length=byt5_max_length)',
-         '                   max_sequence_length=max_sequence_length, crop_start=108, byt5_max_length=byt5_max_length)',
+        ('max_sequence_length=max_sequence_length, crop_start=crop_start, byt5_max_length=byt5_max_length)',
+         'max_sequence_length=max_sequence_length, crop_start=108, byt5_max_length=byt5_max_length)',
          "HunyuanVideo-1.5's from_pretrained ignoring its crop_start"),
         ('        return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae"),',
-         '        return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae").to(torch.bfloat16),',
+         '        return cls(load(LTX2VideoTransformer3DModel, "transformer"), '
+         'load(AutoencoderKLLTX2Video, "vae").to(torch.bfloat16),',
          "LTX-2's from_pretrained VAE not in the dtype asked for"),
     ]),
     "train.py (real models)": (["tests/test_real_backends.py"], [
@@ -700,8 +715,12 @@ MUTANTS = {
         ('        print(f"error: {e}", file=sys.stderr)\n        sys.exit(1)\n    if _under_torchrun():',
          '        print(f"error: {e}", file=sys.stderr)\n        sys.exit(2)\n    if _under_torchrun():',
          'a non-finite quantity ending train.py as bad input'),
-        ('    except TrainingFault as e:                     # a non-finite quantity: one line, exit 1\n        print(f"error: {e}", file=sys.stderr)\n        sys.exit(1)',
-         '    except KeyboardInterrupt as e:                     # a non-finite quantity: one line, exit 1\n        print(f"error: {e}", file=sys.stderr)\n        sys.exit(1)',
+        ('    except TrainingFault as e:                     # a non-finite quantity: one line, exit 1\n'
+         '        print(f"error: {e}", file=sys.stderr)\n'
+         '        sys.exit(1)',
+         '    except KeyboardInterrupt as e:                     # a non-finite quantity: one line, exit 1\n'
+         '        print(f"error: {e}", file=sys.stderr)\n'
+         '        sys.exit(1)',
          'a non-finite quantity ending train.py in a traceback'),
     ]),
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [
@@ -753,7 +772,8 @@ MUTANTS = {
         ('        head.load_state_dict(torch.load(head_path, weights_only=True))',
          '        torch.load(head_path, weights_only=True)', "the aesthetic scorer's head loaded but not used"),
         ('        return cls(clip, CLIPImageProcessorPil.from_pretrained(clip_path), head)',
-         '        return cls(clip, CLIPImageProcessorPil(), head)', "the aesthetic scorer's image processor not its own"),
+         '        return cls(clip, CLIPImageProcessorPil(), head)',
+         "the aesthetic scorer's image processor not its own"),
     ]),
     "world.py (bad input)": (["tests/test_models.py::test_unknown_word_is_a_clear_error",
                               "tests/test_world_reward.py::test_a_bad_dataset_file_is_one_clear_error",

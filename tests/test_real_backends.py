@@ -565,7 +565,7 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     step = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line][0]
     assert step["invalid"] + sum(1 for a in step["A"] if a != 0) >= 1 and step["r_distill"] < 0
     assert judge != "toy" or (step["invalid"] == 0 and all(a != 0 for a in step["A"]))
-    if model == "ltx2-tiny" and judge != "toy":   # the saved Executor, benched afterwards by bench.py on a held-out WorldTasks file
+    if model == "ltx2-tiny" and judge != "toy":   # the saved Executor, benched on a held-out WorldTasks file
         lora, held = str(tmp_path / "executor_awm.pt"), _toy_dataset(tmp_path / "bench", 2, seed=7)
         m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
         models.load_lora(m, lora, add=True)                 # adapters of the run's rank, then its weights
@@ -805,7 +805,8 @@ def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     scorer.clip.save_pretrained(str(tmp_path / "clip"))        # from local paths: a CLIP directory and the head's file
     scorer.processor.save_pretrained(str(tmp_path / "clip"))
     torch.save(scorer.head.state_dict(), tmp_path / "head.pt")
-    assert np.array_equal(world.CLIPAesthetic.from_pretrained(str(tmp_path / "clip"), str(tmp_path / "head.pt"))(imgs), s)
+    loaded = world.CLIPAesthetic.from_pretrained(str(tmp_path / "clip"), str(tmp_path / "head.pt"))
+    assert np.array_equal(loaded(imgs), s)
 
 
 def test_a_real_models_rollout_gif_is_thinned_not_enlarged(tmp_path):
