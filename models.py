@@ -1123,12 +1123,12 @@ class HunyuanVideo15(nn.Module):
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
     def from_pretrained(cls, path: str, frames: int = 121, height: int = 480, width: int = 848, dtype=torch.bfloat16,
-                        device="cpu", max_sequence_length: int = 1000, crop_start: int = 108,
-                        byt5_max_length: int = 256):
+                        device="cpu", **text):
         """Load the components from a local diffusers HunyuanVideo-1.5 image-to-video directory (e.g. a snapshot of
         hunyuanvideo-community/HunyuanVideo-1.5-Diffusers-480p_i2v); Table 3's training resolution and frame count
-        are the defaults, and the pipeline's text settings (crop_start: the tokens of Qwen2.5-VL's chat template
-        before the prompt). Each component goes to `device` as it is loaded, so the latent-grid probe runs there."""
+        are the defaults. `text`: __init__'s text settings (max_sequence_length, crop_start, byt5_max_length; by
+        default the pipeline's). Each component goes to `device` as it is loaded, so the latent-grid probe runs
+        there."""
         _require("diffusers", "transformers", "peft")
         if not os.path.isdir(path):
             raise FileNotFoundError(f"HunyuanVideo-1.5 weights not found at {path!r} (a local diffusers directory is "
@@ -1144,7 +1144,7 @@ class HunyuanVideo15(nn.Module):
                    load(T5EncoderModel, "text_encoder_2"), ByT5Tokenizer.from_pretrained(path, subfolder="tokenizer_2"),
                    load(SiglipVisionModel, "image_encoder"),
                    SiglipImageProcessorPil.from_pretrained(path, subfolder="feature_extractor"), frames, height, width,
-                   max_sequence_length=max_sequence_length, crop_start=crop_start, byt5_max_length=byt5_max_length)
+                   **text)
 
     @staticmethod
     def _word_tokenizer(words: list[str]):

@@ -19,10 +19,11 @@ def run(*args, env=None):
                           env={**os.environ, **(env or {})})
 
 
-def exit_2(main, argv: list, capsys) -> str:
+def exit_2(main, argv: list, capsys, code: int = 2) -> str:
     """Call a script's main(argv) in this process, which spares an interpreter and torch start-up (~2 s) per bad
-    input; expect it to stop with exit status 2 and return what it wrote to stderr. The subprocess `run` stays the
-    check that a script's bad input ends in one line and no traceback."""
+    input; expect it to stop with exit status 2 (bad input; or `code`, e.g. 1 for a failed run) and return what it
+    wrote to stderr. The subprocess `run` stays the check that a script's bad input ends in one line and no
+    traceback."""
     capsys.readouterr()
     threads = torch.get_num_threads()   # a script sets its --threads; the other tests keep theirs
     try:
@@ -30,7 +31,7 @@ def exit_2(main, argv: list, capsys) -> str:
             main([str(a) for a in argv])
     finally:
         torch.set_num_threads(threads)
-    assert e.value.code == 2, e.value.code
+    assert e.value.code == code, e.value.code
     return capsys.readouterr().err
 
 

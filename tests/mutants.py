@@ -616,9 +616,9 @@ MUTANTS = {
          '    @classmethod\n'
          '    def tiny(cls, words: list[str], frames: int = 5,',
          "LTX-2's from_pretrained ignoring its max_sequence_length"),
-        ('max_sequence_length=max_sequence_length, crop_start=crop_start, byt5_max_length=byt5_max_length)',
-         'max_sequence_length=max_sequence_length, crop_start=108, byt5_max_length=byt5_max_length)',
-         "HunyuanVideo-1.5's from_pretrained ignoring its crop_start"),
+        ('                   **text)',
+         '                   )',
+         "HunyuanVideo-1.5's from_pretrained ignoring its text settings"),
         ('        return cls(load(LTX2VideoTransformer3DModel, "transformer"), load(AutoencoderKLLTX2Video, "vae"),',
          '        return cls(load(LTX2VideoTransformer3DModel, "transformer"), '
          'load(AutoencoderKLLTX2Video, "vae").to(torch.bfloat16),',

@@ -11,7 +11,7 @@ import bench
 import report
 import reward
 import train
-from conftest import run
+from conftest import exit_2, run
 
 J = reward.Judgment
 
@@ -196,10 +196,8 @@ def test_a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept(
 
     monkeypatch.setattr(report.subprocess, "run", train_py)
     out = str(tmp_path / "out")
-    with pytest.raises(SystemExit) as e:
-        report.main([out, "--quick", "--seeds", "0", "--jobs", "1"])
-    err = capsys.readouterr().err
-    assert e.value.code == 1 and err.startswith(f"error: run {failing} seed 0 failed (exit 3); "), err
+    err = exit_2(report.main, [out, "--quick", "--seeds", "0", "--jobs", "1"], capsys, code=1)
+    assert err.startswith(f"error: run {failing} seed 0 failed (exit 3); "), err
     assert err.split("log.txt ends:\n")[1].split() == [w for i in range(3, 11) for w in ("log", "line", str(i))]
     assert len(calls) == len(report.EXPERIMENTS) and not os.path.exists(os.path.join(out, "report.md"))
     done = {n for n in report.EXPERIMENTS if os.path.isfile(os.path.join(out, "runs", f"{n}_s0", "report_cmd.json"))}

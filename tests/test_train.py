@@ -208,14 +208,9 @@ def test_a_nan_stops_the_run_naming_step_and_quantity(tiny_ckpt, tmp_path, monke
         return r * float("nan") if calls["n"] == 2 else r
 
     monkeypatch.setattr(train.distill, "distill_reward", poisoned)
-    threads = torch.get_num_threads()
-    try:
-        with pytest.raises(SystemExit) as e:
-            train.main([*TINY, "--init", tiny_ckpt, "--run_dir", str(tmp_path), "--steps", "3"])
-    finally:
-        torch.set_num_threads(threads)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert e.value.code == 1 and len(err) == 1, (e.value.code, err)
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--run_dir", tmp_path, "--steps", "3"], capsys, code=1)
+    err = err.strip().splitlines()
+    assert len(err) == 1, err
     assert re.match(r"error: step 2: reward r_distill is not finite.*state.pt is intact", err[0]), err
     assert torch.load(tmp_path / "state.pt", weights_only=True)["step"] == 1          # the last good state
 
