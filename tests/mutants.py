@@ -219,6 +219,9 @@ MUTANTS = {
          '    if False:\n        raise ValueError("copy_for_adapter', 'copy_for_adapter after adapters accepted'),
         ('    if not os.path.isfile(path):\n        raise FileNotFoundError(f"checkpoint',
          '    if False:\n        raise FileNotFoundError(f"checkpoint', 'a missing checkpoint called corrupt'),
+        ("            x1_hat = f0 + out[:, :, :3]", "            x1_hat = out[:, :, :3]",
+         "the DNA-less network's x1_hat without the first frame"),
+        ("        if self.cfg.dna:\n", "        if True:\n", "the DNA head run when ToyConfig.dna is off"),
     ]),
     "reward.py": (JUDGES, [
         ('        s = -1e-3  # the boundary counts as "no"', "        s = 1e-3", "the boundary a yes"),
@@ -345,6 +348,11 @@ MUTANTS = {
         ('TASK_WORDS = {"up": "top", "down": "bottom", "camera": FIRST_PERSON}',
          'TASK_WORDS = {"up": "bottom", "down": "top", "camera": FIRST_PERSON}',
          "T's words for up and down swapped"),
+        ("        if not by_family:\n            break", "        if False:\n            break",
+         "the toy VLM failing on a frame with no feasible task"),
+        ("            return tasks[i], canonical_solution(sols)\n    return None",
+         "            return tasks[i], canonical_solution(sols)\n    return None, None",
+         "goal_clip giving up with a pair of Nones"),
     ]),
     "bench.py": (SCORES, [
         ("    succ = {k: sum(bool(j[k].yes) for j in judgments) for k in KEYS}",
@@ -767,6 +775,8 @@ MUTANTS = {
          '    if False:', '--executor without --gallery accepted'),
         ('        if len(conds) != 2 or bad:',
          '        if bad:', '--handoff with three conditions accepted'),
+        ('    if mode not in RELATE_PROBES:',
+         '    if False:', "an unknown relate probe accepted"),
     ]),
     "world.py (real images)": (["tests/test_real_backends.py::test_aesthetic_ranking_keeps_the_top_90_percent"], [
         ('        head.load_state_dict(torch.load(head_path, weights_only=True))',

@@ -31,6 +31,25 @@ def test_forward_shapes(small):
     assert small(x, t, c).shape == x.shape
 
 
+def test_without_dna_the_network_predicts_a_residual_on_the_first_frame():
+    """ToyConfig(dna=False), docs/base.md's first attempt: x̂_1 = first frame + the head's 3 channels, so with the
+    head zeroed v (1 - t) + x_t is the first frame in every frame, to rounding. The DNA head zeroed instead advects
+    the first frame through its centre-heavy 3x3 filters: close to it, not equal (the flag decides the field)."""
+    torch.manual_seed(0)
+    fields = {}
+    for dna in (False, True):
+        m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, dna=dna)
+        assert m.out.out_channels == 3 + 9 * dna
+        torch.nn.init.zeros_(m.out.weight), torch.nn.init.zeros_(m.out.bias)
+        x, t, c = _inputs(m, ["red square moves left 2 for 3 frames then stops", "nothing moves"])
+        with torch.no_grad():
+            fields[dna] = m(x, t, c) * (1 - t).clamp(min=m.cfg.min_one_minus_t)[:, None, None, None, None] + x
+        f0 = c["frame0"][:, None].expand_as(x)
+    torch.testing.assert_close(fields[False], f0, atol=1e-5, rtol=0)
+    gap = (fields[True] - f0).abs().max().item()
+    assert 0.01 < gap < 1, gap
+
+
 def test_text_encoder_is_order_aware(small):
     ids = small.tokenizer(["[red square]: move to the blue circle", "[blue circle]: move to the red square"])
     tokens, _, pooled = small.text(ids)

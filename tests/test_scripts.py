@@ -295,6 +295,8 @@ def test_relate_probe_forces_the_heads_or_zeroes_relate_and_then_restores_it(tin
             bench.pointing(m, "task", n=5)
     assert forced["agent"] == forced["target"] == 1.0
     assert bench.pointing(m, "task", n=12) == before
+    with pytest.raises(ValueError, match="unknown relate probe 'sideways'; choose from forced, zeroed"):
+        bench.relate_probe(m, pairs, "sideways")                   # refused on the call, before any with block
     # heads 0 and 1 forced onto each other's sprite: each role is found by a head, not by the head that pointing
     # reads for it (head 0 the agent, head 1 the target)
     names = lambda p: {s.name for s in p.scene.sprites}  # noqa: E731

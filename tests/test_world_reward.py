@@ -264,6 +264,22 @@ def test_toy_vlm_error_rate_and_oracle(bench):
     assert all(p.d_vlm == p.d_oracle for p in world.bench_pairs(0.0))
 
 
+def test_a_frame_without_a_feasible_task_gets_none_proposed():
+    """The toy VLM and goal_clip give up, with nothing, on a scene that has no feasible task: a plain background
+    (no sprites to read) proposes no task, however many are asked for, and a sprite-less scene has no goal clip.
+    A scene with sprites gets its n, each with a plan that solves it."""
+    rng = np.random.default_rng(0)
+    blank = np.full((world.H, world.W, 3), 20, np.uint8)
+    assert world.propose_tasks(blank, rng, n=3) == []
+    assert world.goal_clip(world.Scene([]), rng) is None
+    scene = world.random_scene(rng)
+    frame0 = world.render(scene, world.simulate(scene, world.Plan(None)))[0]
+    got = world.propose_tasks(frame0, rng, n=3)
+    assert len(got) == 3 and all(world.solutions(s, task) for s, task, *_ in got)
+    task, plan = world.goal_clip(scene, rng)
+    assert plan in world.solutions(scene, task)
+
+
 def test_executing_the_toy_vlm_s_description_fails_where_it_is_wrong(bench):
     """The simulator executing D: every pair whose D is right is solved, (nearly) none whose D is wrong -- so
     bench.vlm_error_scores splits the bench where a Demonstrator must fail, and the toy VLM's errors are real."""
