@@ -40,7 +40,8 @@ def test_without_dna_the_network_predicts_a_residual_on_the_first_frame():
     for dna in (False, True):
         m = models.make_model("toy", width=16, emb_dim=32, text_dim=32, dna=dna)
         assert m.out.out_channels == 3 + 9 * dna
-        torch.nn.init.zeros_(m.out.weight), torch.nn.init.zeros_(m.out.bias)
+        for p in m.out.parameters():
+            torch.nn.init.zeros_(p)
         x, t, c = _inputs(m, ["red square moves left 2 for 3 frames then stops", "nothing moves"])
         with torch.no_grad():
             fields[dna] = m(x, t, c) * (1 - t).clamp(min=m.cfg.min_one_minus_t)[:, None, None, None, None] + x

@@ -275,7 +275,7 @@ def test_a_frame_without_a_feasible_task_gets_none_proposed():
     scene = world.random_scene(rng)
     frame0 = world.render(scene, world.simulate(scene, world.Plan(None)))[0]
     got = world.propose_tasks(frame0, rng, n=3)
-    assert len(got) == 3 and all(world.solutions(s, task) for s, task, *_ in got)
+    assert len(got) == 3 and all(plan in world.solutions(s, task) for s, task, _, _, _, plan, _ in got)
     task, plan = world.goal_clip(scene, rng)
     assert plan in world.solutions(scene, task)
 
