@@ -314,7 +314,8 @@ class VLMJudge:
         self.ids = {k: vocab[k] for k in ("Yes", "No", "0", "1", "<|image_pad|>")}
 
     @classmethod
-    def from_pretrained(cls, path: str, dtype=None, frames: int = 8, batch: int = 8):
+    def from_pretrained(cls, path: str, dtype=None, **settings):
+        """A judge from a local transformers directory of the VLM; `settings`: __init__'s frames and batch."""
         import os
 
         import models
@@ -325,7 +326,8 @@ class VLMJudge:
             raise FileNotFoundError(f"VLM weights not found at {path!r} (a local directory is needed; nothing is "
                                     f"downloaded)")
         return cls(AutoModelForImageTextToText.from_pretrained(path, dtype=dtype or "auto"),
-                   AutoTokenizer.from_pretrained(path), Qwen2VLImageProcessorPil.from_pretrained(path), frames, batch)
+                   AutoTokenizer.from_pretrained(path), Qwen2VLImageProcessorPil.from_pretrained(path),
+                   **settings)
 
     @staticmethod
     def _word_tokenizer(words: list[str]):
