@@ -540,7 +540,8 @@ def test_missing_packages_and_weights_give_clear_errors(tmp_path):
     r = run("train.py", "--model", "hunyuan15", "--model_path", str(tmp_path / "nowhere"),
             "--run_dir", str(tmp_path / "r"))
     assert r.returncode == 2 and "HunyuanVideo-1.5 weights not found" in r.stderr and "Traceback" not in r.stderr
-    r = run("train.py", "--judge", "qwen-vl", "--judge_path", str(tmp_path / "nowhere"), "--run_dir", str(tmp_path / "r"))
+    r = run("train.py", "--judge", "qwen-vl", "--judge_path", str(tmp_path / "nowhere"),
+            "--run_dir", str(tmp_path / "r"))
     assert r.returncode == 2 and "VLM weights not found" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "r").exists()
 
