@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import sys
 import time
 
@@ -353,6 +354,7 @@ def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
     fig.suptitle(f"The first {len(pairs)} bench pairs (not chosen): frame 0 given, frames 1-"
                  f"{rows[0]['videos'].shape[1] - 1} generated (noise seed {seed}); the verdicts are the toy judges', "
                  f"against T", fontsize=9, y=1 - 0.12 / fh)
+    make_parent(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -574,6 +576,7 @@ def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> 
     F, H = videos.shape[1], videos.shape[2]
     scale = max(1, scale * world.H // H)
     img = strip(videos[:, np.linspace(0, F - 1, min(F, 12)).round().astype(int)], rows)
+    make_parent(path)
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
@@ -607,6 +610,7 @@ def figure(panels: int, width: float = 5.2):
 def save_figure(plt, fig, path: str) -> None:
     """Write fig to path as a PNG and free it."""
     fig.tight_layout()
+    make_parent(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -618,6 +622,32 @@ def curve_band(ax, runs: list[list[dict]], key: str, label: str, marker: str = "
     line, = ax.plot(steps, vals.mean(0), marker=marker, ms=3, label=label, color=color)
     if len(runs) > 1:
         ax.fill_between(steps, vals.min(0), vals.max(0), color=line.get_color(), alpha=0.15)
+
+
+def output_path_error(path: str, flag: str, directory: bool = False, suffix: str = "") -> str | None:
+    """What is wrong with `path` as where `flag` (e.g. "--png") writes, or None: checked before any work, so that
+    none is lost at the end. directory=True: a folder, created if missing. Otherwise a file (ending in `suffix` if
+    one is given), its missing folders created when it is written (save_figure, save_strip, models.atomic_save).
+    Either way the nearest folder that exists must be writable, and nothing on the way may be a file."""
+    full = os.path.abspath(path)
+    if os.path.exists(full) and os.path.isdir(full) != directory:
+        kind, want = ("file", "directory") if directory else ("directory", "file")
+        return f"{flag} {path!r} is a {kind}, not a {want}"
+    if suffix and not directory and not full.lower().endswith(suffix):
+        return f"{flag} {path!r} must end in {suffix}"
+    near = full if os.path.isdir(full) else os.path.dirname(full)
+    while not os.path.exists(near):
+        near = os.path.dirname(near)
+    if not os.path.isdir(near):
+        return f"{flag} {path!r}: {near!r} is a file, so nothing can be made inside it"
+    if not os.access(near, os.W_OK | os.X_OK):
+        return f"{flag} {path!r}: no permission to write in {near!r}"
+    return None
+
+
+def make_parent(path: str) -> None:
+    """Create the folders a file is to be written into."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
 
 
 def file_digest(path: str) -> str:
@@ -780,6 +810,9 @@ def main(argv=None):
     if a.gallery and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.png):
         p.error("--gallery draws videos of the bench: not with --compare, --handoff, --rank_rdistill, --pointing, "
                 "--relate_probe or --png")
+    for flag in ("png", "gallery"):
+        if getattr(a, flag) and (bad := output_path_error(getattr(a, flag), f"--{flag}", suffix=".png")):
+            p.error(bad)
     if a.executor and not a.gallery:
         p.error("--executor is --gallery's Executor row; to evaluate a toy checkpoint give it as --checkpoint")
     if a.n is None:

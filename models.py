@@ -755,6 +755,8 @@ def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
     """Load a model saved by save_checkpoint (default: the shipped base). Raises a one-line error for a missing,
     corrupt or mismatched file."""
     path = path or SHIPPED_BASE
+    if os.path.isdir(path):
+        raise FileNotFoundError(f"checkpoint {path!r} is a directory, not a checkpoint file")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"checkpoint {path!r} does not exist"
                                 + (" (rebuild it with: python train.py --stage pretrain)" if path == SHIPPED_BASE else ""))

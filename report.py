@@ -29,7 +29,7 @@ import numpy as np
 
 import models
 from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, KEYS, curve_band, evaluate, figure, file_digest, fmt, mean_sd,
-                   read_run, save_figure, save_strip)
+                   output_path_error, read_run, save_figure, save_strip)
 
 
 # name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
@@ -300,6 +300,8 @@ def main(argv=None):
     a = p.parse_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs must be >= 1, got {a.jobs}")
+    if bad := output_path_error(a.out, "OUT_DIR", directory=True):
+        p.error(bad)
     if a.checkpoint:
         try:
             models.load_checkpoint(a.checkpoint)

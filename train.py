@@ -465,6 +465,9 @@ def parse_args(argv=None) -> Args:
         p.error("--point_goal_only changes what --point_weight supervises: it needs --point_weight > 0")
     if args.relate_text and not args.relate:
         p.error("--relate_text gives Relate its own text encoder: it needs --relate")
+    for name, directory in (("run_dir", True), ("eval_cache", True), ("out", False)):
+        if getattr(args, name) and (bad := bench.output_path_error(getattr(args, name), f"--{name}", directory)):
+            p.error(bad)
     return args
 
 

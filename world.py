@@ -727,7 +727,8 @@ def load_dataset(path: str) -> list[dict]:
     import json
     import os
     if not os.path.isfile(path):
-        raise ValueError(f"dataset {path!r} does not exist")
+        raise ValueError(f"dataset {path!r} " + ("is a directory, not a JSONL file" if os.path.isdir(path) else
+                                                 "does not exist"))
     rows = []
     with open(path) as f:
         for n, line in enumerate(f, 1):

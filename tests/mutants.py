@@ -37,12 +37,14 @@ REPORT = [f"tests/test_report.py::test_{name}" for name in (
     "denominators_count_discarded_judgments", "a_finished_run_is_reused_only_for_the_same_command_and_base",
     "the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_rebuilt",
     "each_experiment_sets_what_its_figure_says_it_does", "report_bad_input",
-    "a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept")]
+    "a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept")] + [
+    "tests/test_scripts.py::test_output_paths_are_checked_before_any_work"]
 
 BAD_INPUT = ["tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written",
              "tests/test_scripts.py::test_bad_input_gives_one_clear_error",
              "tests/test_real_backends.py::test_missing_packages_and_weights_give_clear_errors",
-             "tests/test_real_backends.py::test_task_solution_parsing_and_the_dataset_file"]
+             "tests/test_real_backends.py::test_task_solution_parsing_and_the_dataset_file",
+             "tests/test_scripts.py::test_output_paths_are_checked_before_any_work"]
 
 # file (and what part of it) -> (the test files to run, [(old, new, what it breaks)])
 MUTANTS = {
@@ -424,6 +426,8 @@ MUTANTS = {
          "the vague caption of the toy VLM's plan"),
     ]),
     "report.py": (REPORT, [
+        ('    if bad := output_path_error(a.out, "OUT_DIR", directory=True):', '    if False:',
+         "report.py's OUT_DIR not checked"),
         ('    score = succ / valid if valid else float("nan")', '    score = succ / n if n else float("nan")',
          "Tab. 4's score over every video, not the judged ones"),
         ("{100 * (n - valid) / max(n, 1):.1f}%", "{100 * valid / max(n, 1):.1f}%",
@@ -675,6 +679,8 @@ MUTANTS = {
     "train.py (bad input)": (BAD_INPUT + ["tests/test_train.py::test_eval_dataset_is_the_bench_and_must_be_held_out",
                              "tests/test_train.py::test_a_nan_stops_the_run_naming_step_and_quantity",
                              "tests/test_train.py::test_a_batch_shards_into_equal_contiguous_shares_or_is_refused"], [
+        ('        if getattr(args, name) and (bad := bench.output_path_error(getattr(args, name), f"--{name}", directory)):',
+         '        if False:', "train.py's output paths (--run_dir, --eval_cache, --out) not checked"),
         ('    if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:',
          '    if False:', 'every reward weight zero accepted'),
         ('    if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):',
@@ -737,7 +743,16 @@ MUTANTS = {
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [
         f"tests/test_scripts.py::test_{name}" for name in ("bad_input_gives_one_clear_error",
         "relate_probe_forces_the_heads_or_zeroes_relate_and_then_restores_it",
-        "rank_rdistill_ranks_within_groups_the_rollouts_it_draws")], [
+        "rank_rdistill_ranks_within_groups_the_rollouts_it_draws", "output_paths_are_checked_before_any_work")], [
+        ('        if getattr(a, flag) and (bad := output_path_error(getattr(a, flag), f"--{flag}", suffix=".png")):',
+         '        if False:', "bench.py's output path (--png, --gallery) not checked"),
+        ('    if suffix and not directory and not full.lower().endswith(suffix):',
+         '    if False:', "an output path with the wrong suffix accepted"),
+        ('    if not os.path.isdir(near):',
+         '    if False:', "an output path inside a file accepted"),
+        ('    if not os.access(near, os.W_OK | os.X_OK):',
+         '    if False:', "an output path in an unwritable folder accepted"),
+        ('    make_parent(path)\n    Image', '    Image', "a PNG strip's missing folders not made"),
         ('    if a.n < 1:',
          '    if False:', "bench.py's --n 0 accepted"),
         ('    if a.n > 200 and not a.dataset:',
@@ -781,6 +796,11 @@ MUTANTS = {
         ('    if mode not in RELATE_PROBES:',
          '    if False:', "an unknown relate probe accepted"),
     ]),
+    "models.py (bad input)": (BAD_INPUT, [
+        ('    if os.path.isdir(path):\n        raise FileNotFoundError(f"checkpoint {path!r} is a directory',
+         '    if False:\n        raise FileNotFoundError(f"checkpoint {path!r} is a directory',
+         'a directory given as a checkpoint called missing'),
+    ]),
     "world.py (real images)": (["tests/test_real_backends.py::test_aesthetic_ranking_keeps_the_top_90_percent"], [
         ('        head.load_state_dict(torch.load(head_path, weights_only=True))',
          '        torch.load(head_path, weights_only=True)', "the aesthetic scorer's head loaded but not used"),
@@ -792,6 +812,8 @@ MUTANTS = {
                               "tests/test_world_reward.py::test_a_bad_dataset_file_is_one_clear_error",
                               "tests/test_world_reward.py::test_instruction_form_carries_the_description_s_information",
                               *BAD_INPUT], [
+        ('("is a directory, not a JSONL file" if os.path.isdir(path) else', '("does not exist" if True else',
+         'a directory given as a dataset called missing'),
         ('            if (kind == "edge" and target not in EDGES) or (kind != "edge" and target not in names):',
          '            if False:', "a task's unknown target accepted"),
         ('            if (kind == "centre") != (agent == FIRST_PERSON):',

@@ -112,6 +112,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     r = run("bench.py", "--checkpoint", str(bad), "--n", "2")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
     assert "does not exist" in exit_2(bench.main, ["--checkpoint", tmp_path / "missing.pt", "--n", "2"], capsys)
+    assert "is a directory, not a checkpoint file" in exit_2(bench.main, ["--checkpoint", tmp_path, "--n", "2"], capsys)
     g = tmp_path / "g.png"
     for argv, msg in ((["--gallery", g, "--n", "13"], "--gallery draws at most 12 pairs"),
                       (["--executor", bad], "--executor is --gallery's Executor row"),
@@ -141,6 +142,33 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--handoff", "task,vlm,oracle"], "--handoff wants A,B")):
         # --n 2 first: a check that let its value through evaluates two pairs and the test fails soon after
         assert msg in exit_2(bench.main, ["--n", "2", *argv], capsys), argv
+
+
+def test_output_paths_are_checked_before_any_work(tmp_path, capsys, monkeypatch):
+    """Where a script writes -- train.py's --run_dir, --eval_cache, --out; bench.py's --png, --gallery; report.py's
+    OUT_DIR -- is checked with the flags, not found wrong after the work (a traceback at the end, the run lost).
+    Missing folders on the way are made when the file is written."""
+    import bench
+    import report
+    import train
+    f, d = tmp_path / "f", tmp_path / "d"
+    f.write_text("")
+    d.mkdir()
+    for argv, msg in ((["--run_dir", f], "--run_dir '%s' is a file, not a directory" % f),
+                      (["--run_dir", f / "x"], "'%s' is a file, so nothing can be made inside it" % f),
+                      (["--eval_cache", f], "--eval_cache '%s' is a file" % f),
+                      (["--stage", "distill", "--out", d], "--out '%s' is a directory, not a file" % d)):
+        assert msg in exit_2(train.parse_args, [str(a) for a in argv], capsys), argv
+    for argv, msg in ((["--png", d], "--png '%s' is a directory" % d), (["--png", tmp_path / "x.jpg"], "end in .png"),
+                      (["--gallery", f / "g.png"], "is a file, so nothing can be made inside it")):
+        assert msg in exit_2(bench.main, ["--n", "2", *map(str, argv)], capsys), argv
+    assert "OUT_DIR '%s' is a file" % f in exit_2(report.main, [str(f), "--quick"], capsys)
+    assert bench.output_path_error(str(tmp_path / "new" / "run"), "--run_dir", directory=True) is None
+    monkeypatch.setattr(os, "access", lambda path, mode: False)      # as for a folder of someone else's, not root's
+    assert "no permission to write in '%s'" % tmp_path in bench.output_path_error(str(tmp_path / "a" / "x.png"), "--png")
+    monkeypatch.undo()
+    bench.save_strip(torch.zeros(2, 3, 16, 16, 3, dtype=torch.uint8).numpy(), str(tmp_path / "a" / "b" / "s.png"))
+    assert (tmp_path / "a" / "b" / "s.png").exists()
 
 
 def test_each_bench_condition_prompts_with_its_own_text():

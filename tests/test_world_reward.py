@@ -67,6 +67,8 @@ def test_a_bad_dataset_file_is_one_clear_error(tmp_path):
             world.load_dataset(str(tmp_path / "d.jsonl"))
     with pytest.raises(ValueError, match="does not exist"):
         world.load_dataset(str(tmp_path / "missing.jsonl"))
+    with pytest.raises(ValueError, match="is a directory, not a JSONL file"):
+        world.load_dataset(str(tmp_path))
     for task in ("[ ]: move left", "[red square]:  ", "red square: move left"):
         with pytest.raises(ValueError, match="is not of the form"):
             world.split_task(task)
