@@ -1513,6 +1513,12 @@ def main(argv=None):
     except TrainingFault as e:                     # a non-finite quantity: one line, exit 1
         print(f"error: {e}", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:                      # Ctrl-C: what is kept, exit 130 (128 + SIGINT) as a shell would
+        state = os.path.join(args.run_dir, "state.pt")
+        kept = (f"{state} holds the last state saved (every --save_every steps): the same command with --resume "
+                "continues from it") if args.stage == "rl" and os.path.isfile(state) else "no resumable state was saved"
+        print(f"\ninterrupted; {kept}", file=sys.stderr)
+        sys.exit(130)
     if _under_torchrun():
         # Under torchrun a gloo worker thread can still hold the last reference to the final barrier, and through it
         # to the collectives before it and their tensors; freeing a tensor that Python has let go of takes the GIL.

@@ -678,7 +678,11 @@ MUTANTS = {
     ]),
     "train.py (bad input)": (BAD_INPUT + ["tests/test_train.py::test_eval_dataset_is_the_bench_and_must_be_held_out",
                              "tests/test_train.py::test_a_nan_stops_the_run_naming_step_and_quantity",
-                             "tests/test_train.py::test_a_batch_shards_into_equal_contiguous_shares_or_is_refused"], [
+                             "tests/test_train.py::test_a_batch_shards_into_equal_contiguous_shares_or_is_refused",
+                             "tests/test_train.py::test_ctrl_c_ends_with_one_line_on_what_is_kept"], [
+        ('    except KeyboardInterrupt:  ', '    except ZeroDivisionError:  ', "Ctrl-C ending train.py in a traceback"),
+        ('if args.stage == "rl" and os.path.isfile(state) else', 'if args.stage == "rl" else',
+         "Ctrl-C pointing to a state that is not there"),
         ('        if getattr(args, name) and (bad := bench.output_path_error(getattr(args, name), f"--{name}", directory)):',
          '        if False:', "train.py's output paths (--run_dir, --eval_cache, --out) not checked"),
         ('    if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:',

@@ -267,6 +267,25 @@ def test_train_steps_sets_the_training_rollouts_apart_from_evaluation(tiny_ckpt,
     assert seen.count(2) == 1 and 3 in seen        # one training rollout of 2 steps; the evaluations at 3
 
 
+def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch):
+    """A KeyboardInterrupt in a stage: exit status 130, no traceback, and the line says whether the run dir holds a
+    state that --resume continues (the rl stage's state.pt) or none."""
+    def interrupted(args):
+        raise KeyboardInterrupt
+    def ctrl_c(*argv):
+        try:
+            return exit_2(train.main, [*argv, "--run_dir", tmp_path], capsys, code=130)
+        except KeyboardInterrupt:        # escaped train.main: pytest would take it for the user's and stop
+            pytest.fail("the interrupt escaped train.main as a traceback")
+    monkeypatch.setitem(train.STAGES, "rl", interrupted)
+    monkeypatch.setitem(train.STAGES, "distill", interrupted)
+    assert "no resumable state was saved" in ctrl_c()
+    (tmp_path / "state.pt").write_bytes(b"")
+    err = ctrl_c()
+    assert "interrupted; %s holds the last state saved" % (tmp_path / "state.pt") in err and "--resume" in err
+    assert "no resumable state" in ctrl_c("--stage", "distill")
+
+
 def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"garbage")
