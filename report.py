@@ -20,8 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -74,8 +76,8 @@ def finished_run(d: str, stage: str, cmd: list, base: str) -> bool:
 def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init: str = "") -> dict:
     """Run every (experiment, seed) of EXPERIMENTS that `out`/runs does not already hold finished with the same
     command, `jobs` at a time (each train.py with 2 // jobs threads). Returns {(name, seed): run_dir}. A run that
-    fails stops the report with its log's last lines; finished runs are kept, so a rerun picks up where it
-    stopped. The runs share one --eval_cache: the base's own evaluations are computed once, not in every run."""
+    fails stops the report with its log's last lines (after the runs already queued); Ctrl-C, or a run that was
+    interrupted, starts no more. Finished runs are kept, so a rerun picks up where it stopped. The runs share one --eval_cache: the base's own evaluations are computed once, not in every run."""
     todo, dirs, base = [], {}, file_digest(init or models.SHIPPED_BASE)
     for name, (stage, flags) in EXPERIMENTS.items():
         for seed in seeds:
@@ -90,14 +92,18 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
     todo.sort(key=lambda item: item[0] != "distill")   # the longest runs first, so no core idles at the end
     print(f"report: {len(dirs) - len(todo)} of {len(dirs)} runs already done; running {len(todo)}, {jobs} at a time",
           flush=True)
-    start, finished = time.time(), []
+    start, finished, stop = time.time(), [], threading.Event()    # stop: after Ctrl-C, start no more runs
 
     def one(item):
+        if stop.is_set():
+            return
         name, seed, d, cmd = item
         os.makedirs(d, exist_ok=True)
         t0 = time.time()
         with open(os.path.join(d, "log.txt"), "w") as log:
             rc = subprocess.run(cmd + ["--threads", str(max(1, 2 // jobs))], stdout=log, stderr=subprocess.STDOUT).returncode
+        if rc in (130, -signal.SIGINT):     # the run was interrupted (a terminal's Ctrl-C reaches it as well)
+            stop.set()
         if rc != 0:
             tail = open(os.path.join(d, "log.txt")).read().splitlines()[-8:]
             raise RuntimeError(f"run {name} seed {seed} failed (exit {rc}); {d}/log.txt ends:\n" + "\n".join(tail))
@@ -108,8 +114,13 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
               f"({(time.time() - start) / 60:.1f} min so far)", flush=True)
 
     with ThreadPoolExecutor(jobs) as pool:
-        for f in [pool.submit(one, item) for item in todo]:
-            f.result()
+        futures = [pool.submit(one, item) for item in todo]
+        try:
+            for f in futures:
+                f.result()
+        except KeyboardInterrupt:       # Ctrl-C: start no more runs (a failed run lets the queued ones go on)
+            stop.set()
+            raise
     return dirs
 
 
@@ -314,6 +325,10 @@ def main(argv=None):
     except RuntimeError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:           # the runs that finished are kept; exit 130 (128 + SIGINT) as a shell would
+        print(f"\ninterrupted; the runs that finished are kept in {os.path.join(a.out, 'runs')}, and the same command "
+              "reuses them", file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

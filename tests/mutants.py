@@ -37,7 +37,8 @@ REPORT = [f"tests/test_report.py::test_{name}" for name in (
     "denominators_count_discarded_judgments", "a_finished_run_is_reused_only_for_the_same_command_and_base",
     "the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_rebuilt",
     "each_experiment_sets_what_its_figure_says_it_does", "report_bad_input",
-    "a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept")] + [
+    "a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept",
+    "ctrl_c_starts_no_more_runs_and_keeps_the_finished")] + [
     "tests/test_scripts.py::test_output_paths_are_checked_before_any_work"]
 
 BAD_INPUT = ["tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written",
@@ -426,6 +427,11 @@ MUTANTS = {
          "the vague caption of the toy VLM's plan"),
     ]),
     "report.py": (REPORT, [
+        ('        if stop.is_set():\n            return\n', '', "report.py starting the queued runs after Ctrl-C"),
+        ('        if rc in (130, -signal.SIGINT):', '        if False:',
+         "report.py starting one more run after an interrupted one"),
+        ('    except KeyboardInterrupt:           # the runs that finished are kept;',
+         '    except ZeroDivisionError:           # the runs that finished are kept;', "Ctrl-C ending report.py in a traceback"),
         ('    if bad := output_path_error(a.out, "OUT_DIR", directory=True):', '    if False:',
          "report.py's OUT_DIR not checked"),
         ('    score = succ / valid if valid else float("nan")', '    score = succ / n if n else float("nan")',
