@@ -77,7 +77,8 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
     """Run every (experiment, seed) of EXPERIMENTS that `out`/runs does not already hold finished with the same
     command, `jobs` at a time (each train.py with 2 // jobs threads). Returns {(name, seed): run_dir}. A run that
     fails stops the report with its log's last lines (after the runs already queued); Ctrl-C, or a run that was
-    interrupted, starts no more. Finished runs are kept, so a rerun picks up where it stopped. The runs share one --eval_cache: the base's own evaluations are computed once, not in every run."""
+    interrupted, starts no more. Finished runs are kept, so a rerun picks up where it stopped. The runs share one
+    --eval_cache: the base's own evaluations are computed once, not in every run."""
     todo, dirs, base = [], {}, file_digest(init or models.SHIPPED_BASE)
     for name, (stage, flags) in EXPERIMENTS.items():
         for seed in seeds:

@@ -1505,6 +1505,8 @@ STAGES = {"pretrain": pretrain, "distill": distill_stage, "rl": rl_stage}
 def main(argv=None):
     args = parse_args(argv)
     print("config: " + json.dumps(dataclasses.asdict(args)))
+    state = os.path.join(args.run_dir, "state.pt")
+    before = os.path.getmtime(state) if os.path.isfile(state) else None      # an earlier run's state, if any
     try:
         STAGES[args.stage](args)
     except (ValueError, FileNotFoundError) as e:   # bad settings, checkpoints or state: one line, exit 2
@@ -1514,9 +1516,9 @@ def main(argv=None):
         print(f"error: {e}", file=sys.stderr)
         sys.exit(1)
     except KeyboardInterrupt:                      # Ctrl-C: what is kept, exit 130 (128 + SIGINT) as a shell would
-        state = os.path.join(args.run_dir, "state.pt")
+        ours = os.path.isfile(state) and (args.resume or os.path.getmtime(state) != before)   # saved or resumed
         kept = (f"{state} holds the last state saved (every --save_every steps): the same command with --resume "
-                "continues from it") if args.stage == "rl" and os.path.isfile(state) else "no resumable state was saved"
+                "continues from it") if args.stage == "rl" and ours else "no resumable state was saved"
         print(f"\ninterrupted; {kept}", file=sys.stderr)
         sys.exit(130)
     if _under_torchrun():

@@ -211,29 +211,40 @@ def test_a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept(
 def test_ctrl_c_starts_no_more_runs_and_keeps_the_finished(tmp_path, monkeypatch, capsys):
     """Ctrl-C during report.py's runs: the queued runs are not started (before, the pool ran every one of them, up to
     an hour, after the interrupt), the finished ones stay recorded for the next call, exit status 130 and one line.
-    A stand-in for train.py, in the second run, interrupts the main thread and exits 130, as a terminal's SIGINT
-    does to both."""
-    import _thread
+    A stand-in for train.py, in the second run, sends SIGINT to the main thread and exits 130, as a terminal's Ctrl-C
+    does to both. Python's SIGINT handler is set for the test, as in a terminal: a background job (CI's) starts with
+    SIGINT ignored, and then no KeyboardInterrupt comes at all."""
+    import signal
+    import threading
     calls = []
 
     def train_py(cmd, stdout=None, **kw):
         stage, d = cmd[cmd.index("--stage") + 1], cmd[cmd.index("--run_dir") + 1]
         calls.append(os.path.basename(d))
         if len(calls) == 2:
-            _thread.interrupt_main()                    # the terminal's SIGINT reaches report.py ...
-            return types.SimpleNamespace(returncode=130)  # ... and its train.py
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)   # Ctrl-C reaches report.py ...
+            return types.SimpleNamespace(returncode=130)                         # ... and its train.py
         open(os.path.join(d, report.SUMMARY[stage]), "w").write("{}")
         return types.SimpleNamespace(returncode=0)
 
     monkeypatch.setattr(report.subprocess, "run", train_py)
     out = tmp_path / "out"
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         err = exit_2(report.main, [out, "--quick", "--seeds", "0", "--jobs", "1"], capsys, code=130)
     except KeyboardInterrupt:                           # escaped report.main: pytest would stop, not fail
         pytest.fail("the interrupt escaped report.main as a traceback")
+    finally:
+        signal.signal(signal.SIGINT, handler)
     assert f"interrupted; the runs that finished are kept in {out / 'runs'}" in err
     assert len(calls) == 2 < len(report.EXPERIMENTS), calls
     assert sum(os.path.isfile(out / "runs" / c / "report_cmd.json") for c in calls) == 1
+    # a run interrupted while report.py was not (its SIGINT ignored, or the run's alone): no more runs start either
+    calls.clear()
+    monkeypatch.setattr(report.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or types.SimpleNamespace(
+        returncode=130))
+    assert "failed (exit 130)" in exit_2(report.main, [out, "--quick", "--seeds", "0", "--jobs", "1"], capsys, code=1)
+    assert len(calls) == 1, len(calls)
 
 
 def test_report_bad_input(tmp_path):

@@ -277,12 +277,19 @@ def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch
             return exit_2(train.main, [*argv, "--run_dir", tmp_path], capsys, code=130)
         except KeyboardInterrupt:        # escaped train.main: pytest would take it for the user's and stop
             pytest.fail("the interrupt escaped train.main as a traceback")
-    monkeypatch.setitem(train.STAGES, "rl", interrupted)
+    def saving(args):                    # this run saves a state, then is interrupted
+        (tmp_path / "state.pt").write_bytes(b"")
+        raise KeyboardInterrupt
     monkeypatch.setitem(train.STAGES, "distill", interrupted)
+    monkeypatch.setitem(train.STAGES, "rl", interrupted)
     assert "no resumable state was saved" in ctrl_c()
-    (tmp_path / "state.pt").write_bytes(b"")
+    monkeypatch.setitem(train.STAGES, "rl", saving)
     err = ctrl_c()
     assert "interrupted; %s holds the last state saved" % (tmp_path / "state.pt") in err and "--resume" in err
+    monkeypatch.setitem(train.STAGES, "rl", interrupted)
+    os.utime(tmp_path / "state.pt", (0, 0))          # an older run's state, not this one's ...
+    assert "no resumable state was saved" in ctrl_c()
+    assert "holds the last state saved" in ctrl_c("--resume")      # ... unless this run resumed from it
     assert "no resumable state" in ctrl_c("--stage", "distill")
 
 
