@@ -272,14 +272,17 @@ def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch
     state that --resume continues (the rl stage's state.pt) or none."""
     def interrupted(args):
         raise KeyboardInterrupt
+
+    def saving(args):                    # this run saves a state, then is interrupted
+        (tmp_path / "state.pt").write_bytes(b"")
+        raise KeyboardInterrupt
+
     def ctrl_c(*argv):
         try:
             return exit_2(train.main, [*argv, "--run_dir", tmp_path], capsys, code=130)
         except KeyboardInterrupt:        # escaped train.main: pytest would take it for the user's and stop
             pytest.fail("the interrupt escaped train.main as a traceback")
-    def saving(args):                    # this run saves a state, then is interrupted
-        (tmp_path / "state.pt").write_bytes(b"")
-        raise KeyboardInterrupt
+
     monkeypatch.setitem(train.STAGES, "distill", interrupted)
     monkeypatch.setitem(train.STAGES, "rl", interrupted)
     assert "no resumable state was saved" in ctrl_c()
