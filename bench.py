@@ -354,7 +354,7 @@ def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
     fig.suptitle(f"The first {len(pairs)} bench pairs (not chosen): frame 0 given, frames 1-"
                  f"{rows[0]['videos'].shape[1] - 1} generated (noise seed {seed}); the verdicts are the toy judges', "
                  f"against T", fontsize=9, y=1 - 0.12 / fh)
-    make_parent(path)
+    models.make_parent(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -576,7 +576,7 @@ def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> 
     F, H = videos.shape[1], videos.shape[2]
     scale = max(1, scale * world.H // H)
     img = strip(videos[:, np.linspace(0, F - 1, min(F, 12)).round().astype(int)], rows)
-    make_parent(path)
+    models.make_parent(path)
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
@@ -610,7 +610,7 @@ def figure(panels: int, width: float = 5.2):
 def save_figure(plt, fig, path: str) -> None:
     """Write fig to path as a PNG and free it."""
     fig.tight_layout()
-    make_parent(path)
+    models.make_parent(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -627,7 +627,7 @@ def curve_band(ax, runs: list[list[dict]], key: str, label: str, marker: str = "
 def output_path_error(path: str, flag: str, directory: bool = False, suffix: str = "") -> str | None:
     """What is wrong with `path` as where `flag` (e.g. "--png") writes, or None: checked before any work, so that
     none is lost at the end. directory=True: a folder, created if missing. Otherwise a file (ending in `suffix` if
-    one is given), its missing folders created when it is written (save_figure, save_strip, models.atomic_save).
+    one is given), its missing folders created when it is written (models.make_parent).
     Either way the nearest folder that exists must be writable, and nothing on the way may be a file."""
     full = os.path.abspath(path)
     if os.path.exists(full) and os.path.isdir(full) != directory:
@@ -645,11 +645,6 @@ def output_path_error(path: str, flag: str, directory: bool = False, suffix: str
     return None
 
 
-def make_parent(path: str) -> None:
-    """Create the folders a file is to be written into."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-
-
 def file_digest(path: str) -> str:
     """The first 16 hex digits of a file's SHA-256: which base checkpoint a run started from (the key of report.py's
     run reuse and of train.py's --eval_cache)."""
@@ -663,7 +658,6 @@ def read_run(run_dir: str) -> dict:
     still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step `still` count over
     its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from rl_summary.json when the
     run finished."""
-    import os
     path = os.path.join(run_dir, "rl.jsonl")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")

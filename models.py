@@ -703,10 +703,15 @@ def save_checkpoint(model: nn.Module, path: str, meta: dict | None = None) -> No
     atomic_save(state, path)
 
 
+def make_parent(path: str) -> None:
+    """Create the folders a file is to be written into (atomic_save; bench.py's pictures)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+
+
 def atomic_save(obj, path: str) -> None:
     """torch.save to a temp file, then rename over `path`: a crash or a kill never leaves half a file, and on
     failure the previous file is untouched and no temp file is left."""
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    make_parent(path)
     tmp = f"{path}.tmp{os.getpid()}"
     try:
         torch.save(obj, tmp)
@@ -755,10 +760,9 @@ def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
     """Load a model saved by save_checkpoint (default: the shipped base). Raises a one-line error for a missing,
     corrupt or mismatched file."""
     path = path or SHIPPED_BASE
-    if os.path.isdir(path):
-        raise FileNotFoundError(f"checkpoint {path!r} is a directory, not a checkpoint file")
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"checkpoint {path!r} does not exist"
+        raise FileNotFoundError(f"checkpoint {path!r} is a directory, not a checkpoint file" if os.path.isdir(path) else
+                                f"checkpoint {path!r} does not exist"
                                 + (" (rebuild it with: python train.py --stage pretrain)" if path == SHIPPED_BASE else ""))
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)

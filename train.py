@@ -1198,6 +1198,11 @@ _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "sa
                 "eval_cache", "micro_batch", "grad_checkpoint", "offload_text", "offload_judge")
 
 
+def run_state_path(args: Args) -> str:
+    """Where the rl stage keeps its resumable state (--save_every, --resume; main's Ctrl-C line points to it)."""
+    return os.path.join(args.run_dir, "state.pt")
+
+
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
                args: Args, ema: list | None = None) -> None:
     """Everything a resumed run needs, written atomically (temp file + rename): the LoRA weights (the base is the
@@ -1309,7 +1314,7 @@ def rl_stage(args: Args) -> dict:
     say = print if rank0 else (lambda *a, **k: None)
     rng = seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
-    state_path = os.path.join(args.run_dir, "state.pt")
+    state_path = run_state_path(args)
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
     global JUDGE, BENCH
@@ -1505,7 +1510,7 @@ STAGES = {"pretrain": pretrain, "distill": distill_stage, "rl": rl_stage}
 def main(argv=None):
     args = parse_args(argv)
     print("config: " + json.dumps(dataclasses.asdict(args)))
-    state = os.path.join(args.run_dir, "state.pt")
+    state = run_state_path(args)
     before = os.path.getmtime(state) if os.path.isfile(state) else None      # an earlier run's state, if any
     try:
         STAGES[args.stage](args)

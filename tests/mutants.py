@@ -744,8 +744,8 @@ MUTANTS = {
          '        if False:\n', 'a bench that shares rows with --dataset accepted'),
         ('    if bad.any():\n        raise TrainingFault',
          '    if False:\n        raise TrainingFault', 'a non-finite reward or loss let through'),
-        ('        print(f"error: {e}", file=sys.stderr)\n        sys.exit(1)\n    if _under_torchrun():',
-         '        print(f"error: {e}", file=sys.stderr)\n        sys.exit(2)\n    if _under_torchrun():',
+        ('        print(f"error: {e}", file=sys.stderr)\n        sys.exit(1)\n    except KeyboardInterrupt:',
+         '        print(f"error: {e}", file=sys.stderr)\n        sys.exit(2)\n    except KeyboardInterrupt:',
          'a non-finite quantity ending train.py as bad input'),
         ('    except TrainingFault as e:                     # a non-finite quantity: one line, exit 1\n'
          '        print(f"error: {e}", file=sys.stderr)\n'
@@ -767,7 +767,7 @@ MUTANTS = {
          '    if False:', "an output path inside a file accepted"),
         ('    if not os.access(near, os.W_OK | os.X_OK):',
          '    if False:', "an output path in an unwritable folder accepted"),
-        ('    make_parent(path)\n    Image', '    Image', "a PNG strip's missing folders not made"),
+        ('    models.make_parent(path)\n    Image', '    Image', "a PNG strip's missing folders not made"),
         ('    if a.n < 1:',
          '    if False:', "bench.py's --n 0 accepted"),
         ('    if a.n > 200 and not a.dataset:',
@@ -812,8 +812,7 @@ MUTANTS = {
          '    if False:', "an unknown relate probe accepted"),
     ]),
     "models.py (bad input)": (BAD_INPUT, [
-        ('    if os.path.isdir(path):\n        raise FileNotFoundError(f"checkpoint {path!r} is a directory',
-         '    if False:\n        raise FileNotFoundError(f"checkpoint {path!r} is a directory',
+        ('a checkpoint file" if os.path.isdir(path) else', 'a checkpoint file" if False else',
          'a directory given as a checkpoint called missing'),
     ]),
     "world.py (real images)": (["tests/test_real_backends.py::test_aesthetic_ranking_keeps_the_top_90_percent"], [
