@@ -661,8 +661,15 @@ def read_run(run_dir: str) -> dict:
     path = os.path.join(run_dir, "rl.jsonl")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
-    records = list(map(json.loads, open(path)))
+    records = []
+    for i, line in enumerate(open(path), 1):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path} line {i} is not JSON ({e}): a run cut off while writing it?") from None
     evals = [r for r in records if r.get("eval")]
+    if not evals:
+        raise ValueError(f"{path} holds no bench evaluation yet (a run evaluates every --eval_every steps)")
     steps = [{"step": r["step"], "still": r["still"] / len(r["A"])} for r in records
              if not r.get("eval") and "still" in r and r.get("A")]
     summ = os.path.join(run_dir, "rl_summary.json")
@@ -700,6 +707,8 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
     for label, rs in groups.items():
         evs = [r["evals"] for r in rs]
         steps = sorted(set.intersection(*[{e["step"] for e in ev} for ev in evs]))
+        if not steps:
+            raise ValueError(f"the runs of {label!r} share no evaluated step (seeds of one setting evaluate alike)")
         mean_task = {s: np.mean([next(e["task"] for e in ev if e["step"] == s) for ev in evs]) for s in steps}
         peak = max(steps, key=lambda s: mean_task[s])
         end = [ev[-1] for ev in evs]
@@ -828,6 +837,8 @@ def main(argv=None):
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
     if a.batch < 1:
         p.error(f"--batch must be >= 1, got {a.batch}")
+    if a.threads < 1:
+        p.error(f"--threads must be >= 1, got {a.threads}")
     if a.model in REAL_MODELS and not a.model_path:
         p.error(f"--model {a.model} needs --model_path (a local diffusers directory; nothing is downloaded)")
     if models.cannot_run_here(a.model, a.judge):
@@ -848,8 +859,8 @@ def main(argv=None):
         p.error(f"--error_rate must lie in [0, 1], got {a.error_rate}")
     if a.steps < 1:
         p.error(f"--steps must be >= 1, got {a.steps}")
-    if a.guidance < 0:
-        p.error(f"--guidance must be >= 0 (1: none, 0: the empty caption alone), got {a.guidance}")
+    if not (np.isfinite(a.guidance) and a.guidance >= 0):      # nan and inf would sample nan videos
+        p.error(f"--guidance must be a finite number >= 0 (1: none, 0: the empty caption alone), got {a.guidance}")
     if a.guidance != 1 and (a.handoff is not None or a.rank_rdistill or a.pointing or a.gallery):
         p.error("--guidance applies to one evaluation: not with --handoff, --rank_rdistill, --pointing or --gallery")
     if a.group < 2:

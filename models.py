@@ -727,14 +727,17 @@ def save_lora(model: nn.Module, path: str, meta: dict | None = None) -> None:
                  "meta": meta or {}}, path)
 
 
-def _reason(e: Exception) -> str:
+def load_error(e: Exception) -> str:
     """One line on why a file would not load. torch.load(weights_only=True)'s refusal opens with advice to load the
-    file as an arbitrary pickle instead; a file we did not write must not be loaded that way, so keep only the cause."""
+    file as an arbitrary pickle instead; a file we did not write must not be loaded that way, so keep only the cause.
+    An empty or cut-off file raises an EOFError with no message."""
     text = str(e)
     if "WeightsUnpickler error:" in text:
         cause = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
         text = f"not a file of tensors that torch.save wrote ({cause})"
-    return f"{type(e).__name__}: {text.splitlines()[0][:200]}"
+    if isinstance(e, EOFError) and not text.strip():
+        text = "the file is empty or cut short"
+    return f"{type(e).__name__}: {(text.splitlines() or [''])[0][:200]}"
 
 
 def load_lora(model: nn.Module, path: str, add: bool = False) -> dict:
@@ -752,7 +755,7 @@ def load_lora(model: nn.Module, path: str, add: bool = False) -> dict:
     except FileNotFoundError:
         raise FileNotFoundError(f"LoRA file {path!r} does not exist") from None
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"LoRA file {path!r} is corrupt or does not match this model: {_reason(e)}") from None
+        raise ValueError(f"LoRA file {path!r} is corrupt or does not match this model: {load_error(e)}") from None
     return state.get("meta", {})
 
 
@@ -766,10 +769,15 @@ def load_checkpoint(path: str | None = None) -> tuple[nn.Module, dict]:
                                 + (" (rebuild it with: python train.py --stage pretrain)" if path == SHIPPED_BASE else ""))
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-        model = make_model(state["backend"], **state["config"])
-        model.load_state_dict(state["state_dict"])
+        run_state = isinstance(state, dict) and "step" in state and "lora" in state    # train.save_state's file
+        if not run_state:
+            model = make_model(state["backend"], **state["config"])
+            model.load_state_dict(state["state_dict"])
     except Exception as e:  # noqa: BLE001 -- any failure here means the file is not a usable checkpoint
-        raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {_reason(e)}") from None
+        raise ValueError(f"checkpoint {path!r} is corrupt or does not match this code: {load_error(e)}") from None
+    if run_state:
+        raise ValueError(f"checkpoint {path!r} is a run's state for train.py --resume, not a model: the run's "
+                         f"Executor is the executor_*.pt beside it")
     return model, state.get("meta", {})
 
 

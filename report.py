@@ -312,6 +312,12 @@ def main(argv=None):
     a = p.parse_args(argv)
     if a.jobs < 1:
         p.error(f"--jobs must be >= 1, got {a.jobs}")
+    if a.threads < 1:
+        p.error(f"--threads must be >= 1, got {a.threads}")
+    if a.seeds and min(a.seeds) < 0:
+        p.error(f"--seeds must be >= 0 (train.py's --seed), got {' '.join(map(str, a.seeds))}")
+    if a.seeds and len(set(a.seeds)) < len(a.seeds):    # a seed twice: two runs in one folder, counted twice
+        p.error(f"--seeds must differ, got {' '.join(map(str, a.seeds))}")
     if bad := output_path_error(a.out, "OUT_DIR", directory=True):
         p.error(bad)
     if a.checkpoint:

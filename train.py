@@ -63,7 +63,8 @@ class Args:
     threads: int = 2
     """torch CPU threads"""
     out: str = ""
-    """where the trained checkpoint goes (default: checkpoints/base.pt for pretrain, <run_dir>/executor_<variant>.pt for distill)"""
+    """where the trained checkpoint goes (default: checkpoints/base.pt for pretrain, <run_dir>/executor_<variant>.pt
+    for distill, <run_dir>/executor_<trainer>.pt for rl); one file, so one --variant"""
     run_dir: str = "runs"
     """metrics (JSON lines), plots and GIFs go here"""
     # ---- pretrain ----
@@ -341,6 +342,11 @@ def parse_args(argv=None) -> Args:
             p.add_argument(f"--{f.name}", type=typ, default=f.default, help=docs.get(f.name),
                            choices=list(STAGES) if f.name == "stage" else None)
     args = Args(**vars(p.parse_args(argv)))
+    for f in dataclasses.fields(Args):      # nan passes every range check below (each comparison is False)
+        if f.type in ("float", float) and not np.isfinite(getattr(args, f.name)):
+            p.error(f"--{f.name} must be a finite number, got {getattr(args, f.name)}")
+    if args.seed < 0:
+        p.error(f"--seed must be >= 0 (numpy's generators take no negative seed), got {args.seed}")
     if args.eval_every == 0:
         args.eval_every = 25 if args.stage == "rl" else 10
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
@@ -353,6 +359,9 @@ def parse_args(argv=None) -> Args:
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
     if bad:
         p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
+    if args.out and args.stage == "distill" and "," in args.variant:
+        p.error("--out names one checkpoint: with several --variant each Executor goes to "
+                "<run_dir>/executor_<variant>.pt")
     if args.group_size < 2:
         p.error(f"--group_size must be >= 2 (advantages compare rollouts within a group), got {args.group_size}")
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
@@ -367,7 +376,7 @@ def parse_args(argv=None) -> Args:
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
     for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
-                 "clip_range", "alternate", "weight_decay", "loss_power"):
+                 "clip_range", "alternate", "weight_decay", "loss_power", "noise_level"):
         if getattr(args, name) < 0:
             p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
     for name in ("lr", "pretrain_lr", "lora_alpha", "ghuber_power", "nft_beta", "motion_weight",
@@ -782,7 +791,7 @@ def distill_stage(args: Args) -> dict:
         for v in variants:
             model, evals = distill_variant(args, v, pairs, logf, at_0)
             results["variants"][v] = evals
-            out = args.out if (args.out and len(variants) == 1) else os.path.join(args.run_dir, f"executor_{v}.pt")
+            out = args.out or os.path.join(args.run_dir, f"executor_{v}.pt")
             models.save_checkpoint(models.merge_lora(model), out,  # LoRA folded in: loadable by bench.py
                                    {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)})
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
@@ -1226,7 +1235,7 @@ def load_state(path: str, args: Args) -> dict:
         state = torch.load(path, map_location="cpu", weights_only=True)
         step, saved = int(state["step"]), state["args"]
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"--resume: {path!r} is corrupt: {type(e).__name__}: {str(e).splitlines()[0][:200]}") from None
+        raise ValueError(f"--resume: {path!r} is corrupt: {models.load_error(e)}") from None
     default = dataclasses.asdict(Args())   # a setting the state lacks did not exist when it was written: its default
     diff = [k for k, v in dataclasses.asdict(args).items()
             if k not in _RESUME_FREE and saved.get(k, default[k]) != v]

@@ -20,7 +20,8 @@ This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) an
 
 Simplifications: integer pixel motion, one mover per video, no pushing, no occlusion (plans never overlap sprites).
 
-Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of the oracle solution).
+Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of the oracle solution); `--help`
+says how many and where.
 """
 from __future__ import annotations
 
@@ -625,17 +626,6 @@ def sft_batch(rng: np.random.Generator, batch: int, exclude: set | None = None):
     return np.stack(videos), tasks
 
 
-if __name__ == "__main__":
-    from PIL import Image
-    pairs = bench_pairs(0.0)[:6]
-    rows = [np.concatenate(list(render(p.scene, simulate(p.scene, p.plan_oracle))), axis=1) for p in pairs]
-    img = np.concatenate(rows, axis=0)
-    Image.fromarray(img).resize((img.shape[1] * 8, img.shape[0] * 8), Image.NEAREST).save("world_examples.png")
-    for p in pairs:
-        print(f"{p.task.family:12s} T = {p.task.text!r:45s} D = {p.d_oracle!r}")
-    print("wrote world_examples.png")
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # real images: the WorldTasks construction of Sec. 4.1.1 / App. A.6 for the real-model path (--model ltx2)
 # ----------------------------------------------------------------------------------------------------------------
@@ -845,3 +835,30 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     os.replace(tmp, out_path)
     counts["pairs"] = len(rows)
     return counts
+
+
+def main(argv=None) -> None:
+    """`python world.py`: the first bench pairs as the simulator solves them, and their T and D."""
+    import argparse
+
+    import bench        # bench imports this module: here, not at the top
+    p = argparse.ArgumentParser(description="Draw the first N pairs of the 200-pair bench as the simulator solves them "
+                                "(the error-free plan; one pair a row, frames 0..5 left to right) into a PNG, and "
+                                "print each pair's family, T and D.")
+    p.add_argument("--n", type=int, default=6, help="bench pairs to draw, 1..200")
+    p.add_argument("--out", default="world_examples.png", help="the PNG to write")
+    a = p.parse_args(argv)
+    if not 1 <= a.n <= 200:
+        p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
+    if bad := bench.output_path_error(a.out, "--out", suffix=".png"):
+        p.error(bad)
+    pairs = bench_pairs(0.0)[:a.n]
+    bench.save_strip(np.stack([render(q.scene, simulate(q.scene, q.plan_oracle)) for q in pairs]), a.out, rows=a.n,
+                     scale=8)
+    for q in pairs:
+        print(f"{q.task.family:12s} T = {q.task.text!r:45s} D = {q.d_oracle!r}")
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -208,6 +208,9 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path, small):
     with pytest.raises(ValueError, match="corrupt") as bad:
         models.load_checkpoint(str(tmp_path / "bad.pt"))
     assert "weights_only" not in str(bad.value)  # torch's advice to unpickle an unknown file is not passed on
+    (tmp_path / "empty.pt").write_bytes(b"")       # an EOFError with no message
+    with pytest.raises(ValueError, match="corrupt .*EOFError: the file is empty or cut short"):
+        models.load_checkpoint(str(tmp_path / "empty.pt"))
     state = torch.load(path, weights_only=True)
     state["config"]["width"] = 24  # a mismatched shape
     torch.save(state, str(tmp_path / "mismatch.pt"))

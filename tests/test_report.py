@@ -247,12 +247,17 @@ def test_ctrl_c_starts_no_more_runs_and_keeps_the_finished(tmp_path, monkeypatch
     assert len(calls) == 1, len(calls)
 
 
-def test_report_bad_input(tmp_path):
+def test_report_bad_input(tmp_path, monkeypatch, capsys):
     r = run("report.py", str(tmp_path), "--quick", "--checkpoint", str(tmp_path / "nope.pt"))
     assert r.returncode == 2 and "does not exist" in r.stderr
     assert not os.listdir(tmp_path)
     r = run("report.py", str(tmp_path), "--jobs", "0")
     assert r.returncode == 2 and "--jobs" in r.stderr
+    monkeypatch.setattr(report, "report", lambda *a: pytest.fail("a bad flag let the report start"))
+    for argv, msg in ((["--threads", "0"], "--threads must be >= 1"), (["--seeds", "0", "-1"], "--seeds must be >= 0"),
+                      (["--seeds", "1", "0", "1"], "--seeds must differ")):   # a seed twice: two runs in one folder
+        assert msg in exit_2(report.main, [tmp_path, "--quick", *argv], capsys), argv
+    assert not os.listdir(tmp_path)
 
 
 @pytest.mark.parametrize("bad", ["--variant sft,xyz"])

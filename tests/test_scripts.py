@@ -100,6 +100,10 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--trainer", "ppo"], "--trainer: unknown 'ppo'"),
                       (["--group_size", "1"], "--group_size must be >= 2"), (["--beta_d", "-0.1"], "--beta_d must be >= 0"),
                       (["--lr", "-1"], "--lr must be > 0"), (["--ghuber_power", "0"], "--ghuber_power must be > 0"),
+                      (["--beta_d", "nan"], "--beta_d must be a finite number"),
+                      (["--stage", "pretrain", "--pretrain_lr", "inf"], "--pretrain_lr must be a finite number"),
+                      (["--seed", "-1"], "--seed must be >= 0"), (["--noise_level", "-0.7"], "--noise_level must be >= 0"),
+                      (["--stage", "distill", "--variant", "off,on", "--out", "x.pt"], "--out names one checkpoint"),
                       (["--stage", "pretrain", "--point_weight", "0.1"], "it needs --relate"),
                       (["--stage", "pretrain", "--p_task_words", "1.5"], "--p_task_words must lie in [0, 1]"),
                       (["--stage", "pretrain", "--relate", "--point_goal_only"], "it needs --point_weight > 0"),
@@ -134,7 +138,10 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--model", "ltx2-tiny", "--checkpoint", bad], "--checkpoint is a toy model file"),
                       (["--dataset", tmp_path / "d.jsonl", "--condition", "oracle"], "needs the toy bench's scenes"),
                       (["--error_rate", "1.5"], "--error_rate must lie in [0, 1]"),
-                      (["--steps", "0"], "--steps must be >= 1"), (["--guidance", "-1"], "--guidance must be >= 0"),
+                      (["--steps", "0"], "--steps must be >= 1"), (["--guidance", "-1"], "--guidance must be a finite"),
+                      (["--guidance", "nan"], "--guidance must be a finite number >= 0"),
+                      (["--guidance", "inf"], "--guidance must be a finite number >= 0"),
+                      (["--threads", "0"], "--threads must be >= 1"),
                       (["--guidance", "2", "--handoff", "task,vlm"], "--guidance applies to one evaluation"),
                       (["--rank_rdistill", "--group", "1"], "--group must be >= 2"),
                       (["--handoff", "task,vlm", "--rank_rdistill"], "two different diagnostics"),
@@ -254,6 +261,16 @@ def test_compare_runs_on_fake_runs(tmp_path):
     assert r.returncode == 0 and "0.125 ± 0.106" in r.stdout and (tmp_path / "cli.png").stat().st_size > 1000
     r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
     assert r.returncode == 2 and "no rl.jsonl" in r.stderr
+    # a run not yet evaluated, one cut off mid-line, seeds that share no evaluated step: a message, not max()'s
+    for name, text in (("new", '{"step": 1, "loss": 0.1}\n'), ("cut", '{"step": 1, "loss": 0.1}\n{"step": 2, "lo'),
+                       ("odd", '{"eval": true, "step": 5, "task": 0.1}\n')):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "rl.jsonl").write_text(text)
+    for runs, msg in (({"N": str(tmp_path / "new")}, "holds no bench evaluation yet"),
+                      ({"C": str(tmp_path / "cut")}, "rl.jsonl line 2 is not JSON"),
+                      ({"A+O": [str(tmp_path / "a"), str(tmp_path / "odd")]}, "share no evaluated step")):
+        with pytest.raises(ValueError, match=msg):
+            bench.compare_runs(runs)
 
 
 def test_handoff_switches_the_prompt_at_the_grid_time(tiny_ckpt, tmp_path):
@@ -416,7 +433,7 @@ def test_rank_rdistill_ranks_within_groups_the_rollouts_it_draws(tiny_ckpt):
     r = run("bench.py", "--rank_rdistill", "--group", "1")
     assert r.returncode == 2 and "--group must be >= 2" in r.stderr
     r = run("bench.py", "--guidance", "-1")
-    assert r.returncode == 2 and "--guidance must be >= 0" in r.stderr
+    assert r.returncode == 2 and "--guidance must be a finite number >= 0" in r.stderr
 
 
 def test_pretraining_that_teaches_relate_to_point_and_the_probe_that_reads_it(tmp_path):

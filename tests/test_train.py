@@ -310,6 +310,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     # a state from other settings is refused, not silently continued
     d = tmp_path / "run"
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "1", "--run_dir", str(d)).returncode == 0
+    with pytest.raises(ValueError, match="is a run's state for train.py --resume, not a model"):
+        train.models.load_checkpoint(str(d / "state.pt"))    # bench.py --checkpoint runs/state.pt: a likely slip
     err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume", "--beta_d", "0.5"],
                  capsys)
     assert "--beta_d 1.0 (now 0.5)" in err
@@ -326,6 +328,9 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
+    (d / "state.pt").write_bytes(b"")                   # an empty file: an EOFError with no message
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume"], capsys)
+    assert "corrupt: EOFError: the file is empty or cut short" in err, err
     # a dataset whose prompt has an unknown agent, or an unknown word, for the toy model
     from PIL import Image
     import world

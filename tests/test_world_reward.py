@@ -7,6 +7,7 @@ import pytest
 
 import reward
 import world
+from conftest import exit_2
 from world import Plan, Scene, Sprite
 
 
@@ -481,3 +482,19 @@ def test_vlm_score_is_log_p_yes_minus_log_p_no():
     assert j.yes is False and j.score < 0
     assert reward.judgment_from_logits(np.array([5.0, 1.0, 3.0, 0.0]), 1, 2).yes is None      # answered neither
     assert reward.judgment_from_logits(np.array([np.nan, 1.0, 3.0, 0.0]), 1, 2).score is None
+
+
+def test_world_script_draws_the_pairs_it_prints(tmp_path, capsys):
+    """`python world.py`: the first --n bench pairs, a row each, frames 0..5 of the simulator's error-free solution."""
+    from PIL import Image
+    world.main(["--n", "2", "--out", str(tmp_path / "sub" / "w.png")])
+    out = capsys.readouterr().out
+    pairs = world.bench_pairs(0.0)[:2]
+    assert all(p.task.text in out and p.d_oracle in out for p in pairs), out
+    img = np.asarray(Image.open(tmp_path / "sub" / "w.png").convert("RGB"))
+    assert img.shape == (2 * world.H * 8, world.F * world.W * 8, 3)
+    video = world.render(pairs[1].scene, world.simulate(pairs[1].scene, pairs[1].plan_oracle))
+    assert np.array_equal(img[world.H * 8::8, ::8], np.concatenate(list(video), axis=1))    # row 1: pair 1's frames
+    for argv, msg in ((["--n", "0"], "--n must lie in 1..200"), (["--out", tmp_path], "is a directory, not a file"),
+                      (["--out", tmp_path / "w.gif"], "must end in .png")):
+        assert msg in exit_2(world.main, argv, capsys), argv
