@@ -296,9 +296,9 @@ class Args:
     beta_phi: float = 1.0
     """Alg. 2: weight of the Demonstrator's anchor to the base, L_base"""
     save_every: int = 10
-    """steps between resumable state checkpoints (<run_dir>/state.pt, atomic)"""
+    """rl stage: steps between resumable state checkpoints (<run_dir>/state.pt, atomic)"""
     resume: bool = False
-    """continue the run in --run_dir from its state.pt (same settings; --steps may grow)"""
+    """continue the rl run in --run_dir from its state.pt (same settings; --steps may grow)"""
     executor_update: str = "wmsd"
     """Executor rounds: wmsd (L_RL + beta_d L_anchor, Eq. 12) | off (off-policy distillation from the Demonstrator,
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
@@ -439,6 +439,8 @@ def parse_args(argv=None) -> Args:
                 "VLM pairs only")
     if args.micro_batch < 0:
         p.error(f"--micro_batch must be >= 0 (0: no micro-batches), got {args.micro_batch}")
+    if args.resume and args.stage != "rl":
+        p.error("--resume continues an rl run from its state.pt; the pretrain and distill stages save no state")
     if args.micro_batch and args.stage != "rl":
         p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
     if args.grad_checkpoint and args.model == "toy":

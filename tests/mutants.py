@@ -707,6 +707,8 @@ MUTANTS = {
         ('        if f.type in ("float", float) and not np.isfinite(getattr(args, f.name)):',
          '        if False:', "a nan or infinite float flag of train.py accepted"),
         ('    if args.seed < 0:', '    if False:', "train.py's negative --seed accepted"),
+        ('    if args.resume and args.stage != "rl":', '    if False:',
+         "--resume accepted by a stage that saves no state (it started afresh)"),
         ('    if args.out and args.stage == "distill" and "," in args.variant:', '    if False:',
          "--out with several --variant accepted (the last Executor would overwrite the others)"),
         ('is corrupt: {models.load_error(e)}")', 'is corrupt: {type(e).__name__}: {str(e).splitlines()[0]}")',

@@ -104,6 +104,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--stage", "pretrain", "--pretrain_lr", "inf"], "--pretrain_lr must be a finite number"),
                       (["--seed", "-1"], "--seed must be >= 0"), (["--noise_level", "-0.7"], "--noise_level must be >= 0"),
                       (["--stage", "distill", "--variant", "off,on", "--out", "x.pt"], "--out names one checkpoint"),
+                      (["--stage", "pretrain", "--resume"], "--resume continues an rl run"),
                       (["--stage", "pretrain", "--point_weight", "0.1"], "it needs --relate"),
                       (["--stage", "pretrain", "--p_task_words", "1.5"], "--p_task_words must lie in [0, 1]"),
                       (["--stage", "pretrain", "--relate", "--point_goal_only"], "it needs --point_weight > 0"),
