@@ -657,7 +657,7 @@ def read_run(run_dir: str) -> dict:
     """A train.py rl run: its evaluations (step, task, agent, consistency, avg, still) from rl.jsonl, the share of
     still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step `still` count over
     its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from rl_summary.json when the
-    run finished."""
+    run finished. A ValueError names a line that is not JSON, or a run with no evaluation yet."""
     path = os.path.join(run_dir, "rl.jsonl")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
