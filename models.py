@@ -825,6 +825,19 @@ def built_on(device, dtype):
         torch.set_default_dtype(default)
 
 
+def _check_pipeline_dir(path: str, name: str, parts: tuple[str, ...]) -> None:
+    """A clear error before any loading when `path` is not a local diffusers directory of `name` holding the
+    component folders `parts` (a wrong folder, e.g. the transformer's own, otherwise fails deep in diffusers)."""
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f"{name} weights not found at {path!r} (a local diffusers directory is needed; "
+                                f"nothing is downloaded)")
+    missing = [part for part in parts if not os.path.isdir(os.path.join(path, part))]
+    if missing:
+        raise FileNotFoundError(f"{path!r} is not a diffusers {name} directory: it has no "
+                                f"{'folders' if len(missing) > 1 else 'folder'} {', '.join(missing)} (give the "
+                                f"folder that holds model_index.json and the components)")
+
+
 def _load_part(kind, path: str, subfolder: str, dtype, device):
     """One component of a local diffusers directory, in `dtype`, moved to `device` as it is loaded (so a backend's
     __init__, which probes its VAE, runs there)."""
@@ -908,6 +921,7 @@ class LTX2Video(nn.Module):
     caller feeds one zero audio token. The text encoder and the VAE are frozen and run without gradients."""
 
     backend = "ltx2"
+    PARTS = ("transformer", "vae", "text_encoder", "tokenizer", "connectors")    # the pipeline folder's components
 
     def __init__(self, transformer, vae, text_encoder, tokenizer, connectors, frames: int, height: int, width: int,
                  fps: float = 24.0, max_sequence_length: int = 1024):
@@ -931,9 +945,7 @@ class LTX2Video(nn.Module):
         length (1024 tokens: a step-by-step description D is long). Each component goes to `device` as it is
         loaded, so the latent-grid probe of __init__ runs there."""
         _require("diffusers", "transformers", "peft")
-        if not os.path.isdir(path):
-            raise FileNotFoundError(f"LTX-2 weights not found at {path!r} (a local diffusers directory is needed; "
-                                    f"nothing is downloaded)")
+        _check_pipeline_dir(path, "LTX-2", cls.PARTS)
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
         from transformers import AutoModelForCausalLM, AutoTokenizer
@@ -1113,6 +1125,8 @@ class HunyuanVideo15(nn.Module):
     its mid-block attention mask does not broadcast over a batch (diffusers 0.42: a batch of 2 raises)."""
 
     backend = "hunyuan15"
+    PARTS = ("transformer", "vae", "text_encoder", "tokenizer", "text_encoder_2", "tokenizer_2", "image_encoder",
+             "feature_extractor")                                             # the pipeline folder's components
 
     def __init__(self, transformer, vae, text_encoder, tokenizer, text_encoder_2, tokenizer_2, image_encoder,
                  feature_extractor, frames: int, height: int, width: int, max_sequence_length: int = 1000,
@@ -1144,9 +1158,7 @@ class HunyuanVideo15(nn.Module):
         default the pipeline's). Each component goes to `device` as it is loaded, so the latent-grid probe runs
         there."""
         _require("diffusers", "transformers", "peft")
-        if not os.path.isdir(path):
-            raise FileNotFoundError(f"HunyuanVideo-1.5 weights not found at {path!r} (a local diffusers directory is "
-                                    f"needed; nothing is downloaded)")
+        _check_pipeline_dir(path, "HunyuanVideo-1.5", cls.PARTS)
         from diffusers import AutoencoderKLHunyuanVideo15, HunyuanVideo15Transformer3DModel
         from transformers import (AutoTokenizer, ByT5Tokenizer, Qwen2_5_VLTextModel, SiglipImageProcessorPil,
                                   SiglipVisionModel, T5EncoderModel)

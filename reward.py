@@ -325,6 +325,8 @@ class VLMJudge:
         if not os.path.isdir(path):
             raise FileNotFoundError(f"VLM weights not found at {path!r} (a local directory is needed; nothing is "
                                     f"downloaded)")
+        if not os.path.isfile(os.path.join(path, "config.json")):
+            raise FileNotFoundError(f"{path!r} is not a transformers model directory: it has no config.json")
         return cls(AutoModelForImageTextToText.from_pretrained(path, dtype=dtype or "auto"),
                    AutoTokenizer.from_pretrained(path), Qwen2VLImageProcessorPil.from_pretrained(path),
                    **settings)

@@ -593,6 +593,8 @@ MUTANTS = {
          '    return -(logp * valid).mean()', 'the pointing loss averaged over terms it does not have'),
     ]),
     "models.py (real backends)": (["tests/test_real_backends.py"], [
+        ('    missing = [part for part in parts if not os.path.isdir(os.path.join(path, part))]', '    missing = []',
+         "a folder that is not a diffusers pipeline's left to fail inside diffusers"),
         ("        return z * s / k + m if inverse else (z - m) * k / s",
          "        return (z - m) * k / s if inverse else z * s / k + m", "LTX-2's latent normalisation inverted"),
         ("        sigma = (1 - t).float() * self.transformer", "        sigma = t.float() * self.transformer",
@@ -663,6 +665,8 @@ MUTANTS = {
          "offload_text=a.offload_text, offload_judge=False)", "bench.py's --offload_judge not arriving"),
     ]),
     "reward.py (VLM judge)": (["tests/test_real_backends.py"], [
+        ('        if not os.path.isfile(os.path.join(path, "config.json")):', '        if False:',
+         "a folder without the VLM's config.json left to fail inside transformers"),
         ("        idx = np.linspace(0, len(v) - 1, ", "        idx = np.linspace(0, len(v) // 2, ",
          "the VLM judge's frames from the first half only"),
         ("        task = self._judge(videos, [BENCH_TASK_PROMPT.format(eval_prompt=t) for t in tasks], \"1\", \"0\")",

@@ -273,11 +273,8 @@ def test_the_loaders_checkpoint_and_offload_when_asked(flags, monkeypatch):
     assert (seen[0].offload_text, seen[0].offload_judge) == (flags, flags)
 
 
-PARTS = {models.LTX2Video: ("LTX2ImageToVideoPipeline", ["transformer", "vae", "text_encoder", "tokenizer",
-                                                           "connectors"], {"max_sequence_length": 16}),
+PARTS = {models.LTX2Video: ("LTX2ImageToVideoPipeline", {"max_sequence_length": 16}),
          models.HunyuanVideo15: ("HunyuanVideo15ImageToVideoPipeline",
-                                 ["transformer", "vae", "text_encoder", "tokenizer", "text_encoder_2", "tokenizer_2",
-                                  "image_encoder", "feature_extractor"],
                                  {"max_sequence_length": 16, "crop_start": 0, "byt5_max_length": 16})}
 
 
@@ -289,10 +286,13 @@ def test_from_pretrained_loads_every_component_from_its_pipelines_folder(cls, tm
     settings (the defaults are the pipeline's: LTX-2 pads a prompt to 1024 tokens, and its connectors' registers
     make the velocity depend on that length)."""
     import diffusers
-    pipeline, names, text = PARTS[cls]
-    assert set(names) <= set(inspect.signature(getattr(diffusers, pipeline).__init__).parameters)
+    pipeline, text = PARTS[cls]
+    assert set(cls.PARTS) <= set(inspect.signature(getattr(diffusers, pipeline).__init__).parameters)
     m, f0, c_E, _ = _tiny(cls)
-    for name in names:
+    missing = f"is not a diffusers .* directory: it has no folders {', '.join(cls.PARTS)} "
+    with pytest.raises(FileNotFoundError, match=missing):
+        cls.from_pretrained(str(tmp_path))          # a folder, but not the pipeline's: nothing loaded, one line
+    for name in cls.PARTS:
         getattr(m, name).save_pretrained(str(tmp_path / name))
     loaded = cls.from_pretrained(str(tmp_path), frames=m.frames, height=m.height, width=m.width,
                                  dtype=torch.float32, **text)
@@ -309,6 +309,8 @@ def test_the_vlm_judge_loads_from_a_directory(tmp_path):
     """VLMJudge.from_pretrained (--judge qwen-vl --judge_path): a tiny judge's model, tokenizer and image processor
     saved to one directory load back into a judge with the same logits for the same videos and prompts."""
     judge = reward.VLMJudge.tiny(world.VOCAB + ["[", "]:"])
+    with pytest.raises(FileNotFoundError, match="is not a transformers model directory: it has no config.json"):
+        reward.VLMJudge.from_pretrained(str(tmp_path))
     for part in (judge.model, judge.tokenizer, judge.image_processor):
         part.save_pretrained(str(tmp_path))
     loaded = reward.VLMJudge.from_pretrained(str(tmp_path), frames=judge.frames, batch=judge.batch)
