@@ -1287,11 +1287,13 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
             if model.backend == "toy":          # the toy world's agents and instructions only
                 world.parse_task(r["task"])
             model.check_prompts([r["task"], r["description"]])   # the toy's words; a real text path's length
-        except ValueError as e:
+            with Image.open(r["image"]) as img:   # OSError: not an image PIL reads, or one cut short
+                r["frame0"] = np.asarray(img.convert("RGB").resize(size, Image.BILINEAR))
+        except (ValueError, OSError) as e:
             raise ValueError(f"{path} line {r['line']}: {e}") from None
     if len(rows) < need:
         raise ValueError(f"dataset {path!r} has {len(rows)} rows, fewer than {flag} {need}")
-    return [SimpleNamespace(frame0=np.asarray(Image.open(r["image"]).convert("RGB").resize(size, Image.BILINEAR)),
+    return [SimpleNamespace(frame0=r["frame0"],
                             task=SimpleNamespace(text=r["task"], family=r.get("family") or world.task_family(r["task"]),
                                                  agent=world.split_task(r["task"])[0]),
                             d_vlm=r["description"], image=r["image"])

@@ -808,7 +808,12 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     counts = {"images": len(image_paths), "kept_images": 0, "pairs": 0}
     rows, images, kept = [], [], []
     for p in image_paths:
-        img = np.asarray(Image.open(p).convert("RGB"))
+        try:
+            with Image.open(p) as im:
+                img = np.asarray(im.convert("RGB"))
+        except OSError:         # not an image PIL reads, or cut short: dropped and counted, as the filters drop
+            counts["unreadable"] = counts.get("unreadable", 0) + 1
+            continue
         ok, why = quality_ok(img)
         if ok:
             images.append(img)

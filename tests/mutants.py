@@ -653,6 +653,8 @@ MUTANTS = {
          "LTX-2's from_pretrained VAE not in the dtype asked for"),
     ]),
     "train.py (real models)": (["tests/test_real_backends.py"], [
+        ('        except (ValueError, OSError) as e:', '        except ValueError as e:',
+         "a dataset row's unreadable image ending the run in a traceback"),
         ("        model.transformer.enable_gradient_checkpointing()\n", "        pass\n",
          "--grad_checkpoint not arriving"),
         ("        models.offload(model.text_encoder)\n", "        pass\n", "--offload_text not arriving"),
@@ -846,7 +848,11 @@ MUTANTS = {
         ('        run_state = isinstance(state, dict) and "step" in state and "lora" in state',
          '        run_state = False', "a run's state.pt given as a checkpoint called corrupt"),
     ]),
-    "world.py (real images)": (["tests/test_real_backends.py::test_aesthetic_ranking_keeps_the_top_90_percent"], [
+    "world.py (real images)": (["tests/test_real_backends.py::test_aesthetic_ranking_keeps_the_top_90_percent",
+                                "tests/test_real_backends.py::test_task_solution_parsing_and_the_dataset_file"], [
+        ('        except OSError:         # not an image PIL reads',
+         '        except KeyError:         # not an image PIL reads',
+         "an unreadable image ending the WorldTasks builder in a traceback"),
         ('        head.load_state_dict(torch.load(head_path, weights_only=True))',
          '        torch.load(head_path, weights_only=True)', "the aesthetic scorer's head loaded but not used"),
         ('        return cls(clip, CLIPImageProcessorPil.from_pretrained(clip_path), head)',

@@ -764,8 +764,11 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     for i, img in enumerate([checker, checker, np.zeros((64, 64, 3), np.uint8)]):
         Image.fromarray(img).save(tmp_path / f"{i}.png")
         paths.append(str(tmp_path / f"{i}.png"))
-    counts = world.make_worldtasks(paths, FakeVLM(), str(tmp_path / "wt.jsonl"), per_image=8)
+    (tmp_path / "cut.png").write_bytes((tmp_path / "0.png").read_bytes()[:100])     # an image file cut short
+    counts = world.make_worldtasks(paths + [str(tmp_path / "cut.png")], FakeVLM(), str(tmp_path / "wt.jsonl"),
+                                   per_image=8)
     assert counts["pairs"] == 2 and counts["kept_images"] == 1 and counts["unsuitable"] == 1
+    assert counts["unreadable"] == 1 and counts["images"] == 4
     assert counts.get("underexposed", 0) + counts.get("blurry", 0) == 1
     rows = world.load_dataset(str(tmp_path / "wt.jsonl"))
     assert rows[0]["agent"] == "Driver in racing suit" and rows[1]["family"] == "positioning"
@@ -777,6 +780,10 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     r = run("train.py", "--model", "ltx2-tiny", "--dataset", str(tmp_path / "bad.jsonl"), "--run_dir",
             str(tmp_path / "never"))
     assert r.returncode == 2 and "line 2" in r.stderr and not (tmp_path / "never").exists()
+    (tmp_path / "cut.jsonl").write_text(lines[0] + "\n" + lines[0].replace('"0.png"', '"cut.png"') + "\n")
+    assert '"cut.png"' in (tmp_path / "cut.jsonl").read_text()
+    r = run("bench.py", "--model", "ltx2-tiny", "--dataset", str(tmp_path / "cut.jsonl"), "--n", "2")
+    assert r.returncode == 2 and "cut.jsonl line 2:" in r.stderr and "Traceback" not in r.stderr, r.stderr
     # the tiny VLM's own generate and yes/no run (random weights: arbitrary text)
     judge = reward.VLMJudge.tiny(["press"])
     assert isinstance(judge.generate([checker], "Propose tasks", max_new_tokens=3)[0], str)
