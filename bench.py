@@ -662,11 +662,12 @@ def read_run(run_dir: str) -> dict:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
     records = []
-    for i, line in enumerate(open(path), 1):
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path} line {i} is not JSON ({e}): a run cut off while writing it?") from None
+    with open(path) as f:
+        for i, line in enumerate(f, 1):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError as e:
+                raise ValueError(f"{path} line {i} is not JSON ({e}): a run cut off while writing it?") from None
     evals = [r for r in records if r.get("eval")]
     if not evals:
         raise ValueError(f"{path} holds no bench evaluation yet (a run evaluates every --eval_every steps)")

@@ -690,9 +690,13 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
     path = os.path.join(args.eval_cache, name)
     if os.path.isfile(path):        # the file name is the key's hash
-        cached = json.load(open(path))["result"]
-        if set(EVAL_KEYS) <= cached.keys():   # else written before bench.evaluate returned all that training
-            return cached                     # records (the still count): evaluate again, rewrite
+        try:
+            with open(path) as f:
+                cached = json.load(f)["result"]
+        except (ValueError, KeyError, TypeError):   # damaged (by hand: it is written whole): evaluate again, rewrite
+            cached = {}
+        if isinstance(cached, dict) and set(EVAL_KEYS) <= cached.keys():   # else written before bench.evaluate
+            return cached                     # returned all that training records (the still count): again, rewrite
     res = evaluate_executor(model, args, demonstrator)
     os.makedirs(args.eval_cache, exist_ok=True)
     tmp = f"{path}.{os.getpid()}.tmp"

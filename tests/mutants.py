@@ -478,6 +478,8 @@ MUTANTS = {
          "a failed run's report ending as bad input"),
     ]),
     "train.py": (["tests/test_train.py"], [
+        ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',
+         "a damaged --eval_cache file ending the run in a traceback"),
         ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",
          "        return rl.final_loss(l_rl, l_anchor, 1.0), info", "--beta_d not reaching Eq. 12"),
         ('            local["distill"] = distill.distill_reward_to_go(terms)', '            local["distill"] = terms',

@@ -432,6 +432,12 @@ def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settin
     again = train.base_evaluation(model, a)
     assert "still" in again and len(calls) == n + 1                              # ... is evaluated again
     assert train.base_evaluation(model, a) == again and len(calls) == n + 1     # and rewritten
+    for f in os.listdir(tmp_path / "cache"):   # a damaged cache file (by hand: one is written whole) ...
+        (tmp_path / "cache" / f).write_text('{"key": {}, "resu')
+    fresh = train.base_evaluation(model, a)
+    assert len(calls) == n + 2 and {k: v for k, v in fresh.items() if k not in timing} == \
+        {k: v for k, v in again.items() if k not in timing}                       # ... is evaluated again
+    assert train.base_evaluation(model, a) == fresh and len(calls) == n + 2     # and rewritten
 
 
 def test_executor_prompt_instruction_trains_and_evaluates_on_d_in_the_task_form(tiny_ckpt, tmp_path, monkeypatch):
