@@ -273,6 +273,14 @@ class ToyConfig:
     relate: bool = False     # every pixel gets its offset to where the caption points in the first frame (Relate)
     relate_text: bool = False  # with relate: Relate reads the caption through its own text encoder, not the U-Net's
 
+    def __post_init__(self):
+        if self.width < 8 or self.width % 8:
+            raise ValueError(f"width must be a positive multiple of 8 (the U-Net's GroupNorms have 8 groups), "
+                             f"got {self.width}")
+        if self.evidence < 0 or self.evidence % 2 == 0 and self.evidence:
+            raise ValueError(f"evidence must be 0 (off) or an odd window size (a window centred on the pixel), "
+                             f"got {self.evidence}")
+
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
     """Sinusoidal features of 1000 t: (B,) -> (B, dim)."""

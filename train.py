@@ -261,7 +261,7 @@ class Args:
     adv_agg: str = "gdpo"
     """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
     adv_clip: float = 5.0
-    """advantages are clipped to [-adv_clip, adv_clip]"""
+    """advantages are clipped to [-adv_clip, adv_clip] (0: not clipped)"""
     inner_epochs: int = 1
     """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
     executor_ema: float = 0.0
@@ -302,6 +302,31 @@ class Args:
     executor_update: str = "wmsd"
     """Executor rounds: wmsd (L_RL + beta_d L_anchor, Eq. 12) | off (off-policy distillation from the Demonstrator,
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
+
+
+# The stages that read each flag (any flag not named here is read by all three; --stage and --toy by none). parse_args
+# refuses a flag set, to anything but its default, for a stage that does not read it: a flag silently ignored makes a
+# run other than the one asked for (`--stage rl --width 64` would train the shipped width-32 base's LoRA).
+# tests/test_train.py checks this table against the code each stage runs.
+READ_BY = {
+    **dict.fromkeys(("pretrain_steps", "pretrain_batch", "pretrain_lr", "weight_decay", "ema", "p_vague", "p_empty",
+                     "p_goal", "p_task_words", "width", "evidence", "evidence_by_colour", "evidence_lead", "ground",
+                     "relate", "relate_text", "point_weight", "point_goal_only"), ("pretrain",)),
+    **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
+    **dict.fromkeys(("variant", "batch"), ("distill",)),
+    **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
+                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "eval_every",
+                     "eval_n", "eval_cache", "state_window", "distill_motion_weight", "model", "eval_dataset", "judge",
+                     "judge_path", "micro_batch"), ("distill", "rl")),
+    **dict.fromkeys(("toy_gpu", "model_path", "dataset", "offload_judge", "trainer", "group_size", "tasks_per_step",
+                     "grad_checkpoint", "offload_text", "sampler", "noise_level", "lambda_task", "task_reward",
+                     "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
+                     "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every", "executor_ema_schedule",
+                     "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting", "ghuber_power",
+                     "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume", "executor_update"),
+                    ("rl",)),
+    "stage": (), "toy": (),
+}
 
 
 def train_steps(args: Args) -> int:
@@ -345,6 +370,8 @@ def parse_args(argv=None) -> Args:
     for f in dataclasses.fields(Args):      # nan passes every range check below (each comparison is False)
         if f.type in ("float", float) and not np.isfinite(getattr(args, f.name)):
             p.error(f"--{f.name} must be a finite number, got {getattr(args, f.name)}")
+    ignored = [name for name, stages in READ_BY.items()       # refused below, after the checks that say more
+               if stages and args.stage not in stages and getattr(args, name) != getattr(Args(), name)]
     if args.seed < 0:
         p.error(f"--seed must be >= 0 (numpy's generators take no negative seed), got {args.seed}")
     if args.eval_every == 0:
@@ -460,6 +487,10 @@ def parse_args(argv=None) -> Args:
         p.error("--eval_dataset is the rl stage's bench: it needs --stage rl")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
         p.error("--p_vague, --p_empty, --p_goal must be >= 0 and sum to at most 1")
+    try:
+        models.ToyConfig(width=args.width, evidence=args.evidence)
+    except ValueError as e:
+        p.error(f"--{e}")
     if not 0 <= args.p_task_words <= 1:
         p.error(f"--p_task_words must lie in [0, 1], got {args.p_task_words}")
     if not 0 <= args.ema < 1:
@@ -479,6 +510,9 @@ def parse_args(argv=None) -> Args:
     for name, directory in (("run_dir", True), ("eval_cache", True), ("out", False)):
         if getattr(args, name) and (bad := bench.output_path_error(getattr(args, name), f"--{name}", directory)):
             p.error(bad)
+    for name in ignored:
+        flag = f"--no-{name}" if getattr(args, name) is False else f"--{name}"      # a default-on switch
+        p.error(f"{flag} is read by --stage {' and '.join(READ_BY[name])} only: --stage {args.stage} would ignore it")
     return args
 
 

@@ -1,5 +1,7 @@
 """train.py's rl stage as a long-running job: resume after kill -9, torchrun with 2 processes, faults (a judge that
 raises, a NaN), atomic state writes, and bad input."""
+import ast
+import dataclasses
 import json
 import os
 import re
@@ -17,8 +19,9 @@ import bench
 import train
 from conftest import ROOT, exit_2, run
 
-TINY = ["--toy", "--group_size", "2", "--tasks_per_step", "2", "--eval_every", "2", "--eval_n", "4",
-        "--train_pairs", "8", "--sample_steps", "3", "--save_every", "1", "--threads", "1"]
+TINY_ANY = ["--toy", "--eval_every", "2", "--eval_n", "4", "--train_pairs", "8", "--sample_steps", "3",
+            "--threads", "1"]                                                  # flags the distill and rl stages read
+TINY = [*TINY_ANY, "--group_size", "2", "--tasks_per_step", "2", "--save_every", "1"]   # and the rl stage's own flags
 
 
 def _metrics(path):
@@ -105,9 +108,10 @@ def test_a_batch_shards_into_equal_contiguous_shares_or_is_refused(monkeypatch):
 
 
 def _args(tiny_ckpt, tmp_path, **kw):
-    a = train.parse_args([*TINY, "--init", tiny_ckpt, "--run_dir", str(tmp_path), *sum(
-        ([f"--{k}", str(v)] for k, v in kw.items()), [])])
-    return a
+    """The tiny run's Args (its rl stage's flags, unless kw names another stage), with kw's flags."""
+    tiny = TINY if kw.get("stage", "rl") == "rl" else TINY_ANY
+    return train.parse_args([*tiny, "--init", tiny_ckpt, "--run_dir", str(tmp_path),
+                             *sum(([f"--{k}", str(v)] for k, v in kw.items()), [])])
 
 
 def _one_step(tiny_ckpt, tmp_path, **kw):
@@ -260,8 +264,8 @@ def test_train_steps_sets_the_training_rollouts_apart_from_evaluation(tiny_ckpt,
     seen.clear()
     threads = torch.get_num_threads()
     try:
-        train.main([*TINY, "--init", tiny_ckpt, "--stage", "distill", "--variant", "on", "--steps", "1", "--batch", "3",
-                    "--eval_n", "2", "--train_steps", "2", "--run_dir", str(tmp_path / "d")])
+        train.main([*TINY_ANY, "--init", tiny_ckpt, "--stage", "distill", "--variant", "on", "--steps", "1",
+                    "--batch", "3", "--eval_n", "2", "--train_steps", "2", "--run_dir", str(tmp_path / "d")])
     finally:
         torch.set_num_threads(threads)
     assert seen.count(2) == 1 and 3 in seen        # one training rollout of 2 steps; the evaluations at 3
@@ -398,7 +402,10 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--p_goal", "-0.1"], "must be >= 0 and sum to at most 1"),
                       (["--ema", "1"], "--ema must lie in [0, 1)"),
                       (["--relate", "--point_weight", "-1"], "--point_weight must be >= 0"),
-                      (["--lr", "0"], "--lr must be > 0")):
+                      (["--lr", "0"], "--lr must be > 0"),
+                      (["--stage", "pretrain", "--width", "12"], "--width must be a positive multiple of 8"),
+                      (["--stage", "pretrain", "--evidence", "4"], "--evidence must be 0 (off) or an odd window"),
+                      (["--stage", "pretrain", "--evidence", "-1"], "--evidence must be 0 (off) or an odd window")):
         err = exit_2(train.parse_args, argv, capsys)
         assert msg in err, (argv, err)
 
@@ -594,6 +601,50 @@ def test_eval_every_defaults_by_stage_and_a_given_value_stands():
     assert every("--toy", "--eval_every", "10") == 10 and every("--stage", "distill", "--eval_every", "3") == 3
     with pytest.raises(SystemExit):
         every("--toy", "--eval_every", "-1")
+
+
+def _flags_each_stage_reads() -> dict:
+    """{stage: the Args fields read as args.NAME in train.py by the stage's function and every train.py function it
+    calls, transitively}: what the code reads, found from its syntax tree, not by running it."""
+    tree = ast.parse(open(os.path.join(ROOT, "train.py")).read())
+    funcs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
+
+    def reads(name, seen):
+        if name in seen:
+            return set()
+        seen.add(name)
+        found = set()
+        for node in ast.walk(funcs[name]):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "args":
+                found.add(node.attr)
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in funcs:
+                found |= reads(node.func.id, seen)
+        return found
+    fields = {f.name for f in dataclasses.fields(train.Args)}
+    return {stage: reads(fn.__name__, set()) & fields for stage, fn in train.STAGES.items()}
+
+
+def test_read_by_names_the_stages_whose_code_reads_each_flag():
+    """train.READ_BY, which parse_args enforces, is what each stage's code reads: a stage that reads a flag the
+    table denies it would refuse a working flag; one the table grants a flag it never reads would ignore it."""
+    read = _flags_each_stage_reads()
+    for f in dataclasses.fields(train.Args):
+        assert set(train.READ_BY.get(f.name, train.STAGES)) == {s for s in train.STAGES if f.name in read[s]}, f.name
+
+
+@pytest.mark.parametrize("flag, wrong, right, msg", [
+    (["--width", "64"], "rl", "pretrain", "--width is read by --stage pretrain only: --stage rl would ignore it"),
+    (["--variant", "off"], "rl", "distill", "--variant is read by --stage distill only: --stage rl"),
+    (["--beta_d", "0"], "distill", "rl", "--beta_d is read by --stage rl only: --stage distill"),
+    (["--init", "b.pt"], "pretrain", "rl", "--init is read by --stage distill and rl only: --stage pretrain"),
+    (["--no-evidence_lead"], "rl", "pretrain", "--no-evidence_lead is read by --stage pretrain only"),
+    (["--log_every", "5"], "rl", "distill", "--log_every is read by --stage pretrain and distill only"),
+])
+def test_a_flag_the_stage_would_ignore_is_refused(flag, wrong, right, msg, capsys):
+    with pytest.raises(SystemExit) as e:
+        train.parse_args(["--stage", wrong, *flag])
+    assert e.value.code == 2 and msg in capsys.readouterr().err
+    train.parse_args(["--stage", right, *flag])          # where it is read: accepted
 
 
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
