@@ -748,6 +748,17 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
     return "\n".join(rows)
 
 
+# The flags each diagnostic reads, beside --threads (the plain evaluation reads all but --group and --executor). main
+# refuses any other flag set with it: ignored, it would leave a run other than the one asked for, or no picture.
+DIAGNOSTIC_READS = {
+    "compare": ("png",),
+    "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json"),
+    "pointing": ("checkpoint", "condition", "n", "error_rate", "relate_probe", "json"),
+    "rank_rdistill": ("checkpoint", "condition", "n", "group", "seed", "error_rate", "steps", "json"),
+    "gallery": ("checkpoint", "executor", "condition", "n", "seed", "error_rate", "steps", "json"),
+}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
@@ -807,6 +818,9 @@ def main(argv=None):
                    help="a --relate base, evaluated (or, forced, --pointing) with Relate altered: heads 0 and 1 forced "
                         "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
     a = p.parse_args(argv)
+    mode = next((m for m in DIAGNOSTIC_READS if getattr(a, m) not in (None, False)), None)
+    ignored = [k for k, v in vars(a).items() if v != p.get_default(k) and k not in (mode, "threads")   # refused
+               and (k == "group" if mode is None else k not in DIAGNOSTIC_READS[mode])]
     a.real = a.model != "toy" or a.judge != "toy" or bool(a.dataset)     # the real path: train.py's loaders
     if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.gallery):
         p.error("--compare, --handoff, --rank_rdistill, --pointing, --relate_probe and --gallery are toy diagnostics: "
@@ -823,15 +837,6 @@ def main(argv=None):
         a.n = 6 if a.gallery else 200
     if a.gallery and a.n > GALLERY_MAX:
         p.error(f"--gallery draws at most {GALLERY_MAX} pairs, got --n {a.n}")
-    if a.compare:
-        try:
-            runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
-            print(compare_runs(runs, a.png))
-        except (ValueError, FileNotFoundError) as e:
-            print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of finished rl runs; several dirs "
-                  "are seeds of one setting)", file=sys.stderr)
-            sys.exit(2)
-        return
     if a.n < 1:
         p.error(f"--n must be >= 1, got {a.n}")
     if a.n > 200 and not a.dataset:
@@ -876,6 +881,20 @@ def main(argv=None):
         bad = [c for c in conds if c not in CONDITIONS]
         if len(conds) != 2 or bad:
             p.error(f"--handoff wants A,B with A and B among {', '.join(CONDITIONS)}; got {a.handoff!r}")
+    for k in ignored:     # after the checks above, which say more
+        if k in DIAGNOSTIC_READS:
+            p.error(f"--{mode} and --{k} are two different diagnostics: give one")
+        p.error(f"--{k} is not read by --{mode}: it would be ignored" if mode else
+                "--group is read by --rank_rdistill only: without it, it would be ignored")
+    if a.compare:
+        try:
+            runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
+            print(compare_runs(runs, a.png))
+        except (ValueError, FileNotFoundError) as e:
+            print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of finished rl runs; several dirs "
+                  "are seeds of one setting)", file=sys.stderr)
+            sys.exit(2)
+        return
     models.use_cpu(a.threads)
     judge = pairs = executor = None
     try:

@@ -1,6 +1,8 @@
 """Smoke runs of the entry scripts with tiny budgets, and their handling of bad input."""
+import contextlib
 import json
 import os
+import types
 
 import pytest
 import torch
@@ -94,6 +96,11 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     r = run("bench.py", "--condition", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
     assert "--handoff wants A,B" in exit_2(bench.main, ["--handoff", "task,bogus"], capsys)
+    assert "--pointing and --rank_rdistill are two different diagnostics" in exit_2(
+        bench.main, ["--pointing", "--rank_rdistill"], capsys)
+    assert "--png is not read by --pointing: it would be ignored" in exit_2(
+        bench.main, ["--pointing", "--png", tmp_path / "p.png"], capsys)
+    assert "--group is read by --rank_rdistill only" in exit_2(bench.main, ["--group", "4"], capsys)
     r = run("train.py", "--stage", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--variant", "on,bogus"], "unknown 'bogus'"),
@@ -449,3 +456,61 @@ def test_pretraining_that_teaches_relate_to_point_and_the_probe_that_reads_it(tm
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout.splitlines()[-1])
     assert 0 <= res["agent"] <= res["agent_any"] <= 1 and res["n_agent"] > 0 and res["n_target"] > 0
+
+
+class _Reached(Exception):
+    """Raised by a stub where bench.main's work starts: the flags were accepted."""
+
+
+@pytest.mark.parametrize("mode", [None, *__import__("bench").DIAGNOSTIC_READS])
+def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(mode, tmp_path, monkeypatch, capsys):
+    """bench.DIAGNOSTIC_READS as main enforces it: every flag, set to a valid non-default value beside the diagnostic
+    (None: the plain evaluation), either reaches the diagnostic and changes what it is called with (or which file is
+    loaded), or is refused with exit 2. (--png and --json, read after the call, are seen by the diagnostics' runs.)"""
+    import bench
+    import train
+    calls = []
+
+    def stub(name, then=None):
+        def f(*a, **k):
+            calls.append((name, a, k))
+            if then is None:
+                raise _Reached
+            return then
+        return f
+
+    model = types.SimpleNamespace(eval=lambda: model)
+    monkeypatch.setattr(bench.models, "load_checkpoint", stub("load", (model, {})))
+    monkeypatch.setattr(train, "load_base", stub("load_base"))                 # the real path's loader
+    monkeypatch.setattr(bench, "relate_probe", stub("relate_probe", contextlib.nullcontext()))
+    for name in ("evaluate", "handoff", "pointing", "rank_rdistill", "gallery", "compare_runs"):
+        monkeypatch.setattr(bench, name, stub(name))
+    value = {"checkpoint": ["x.pt"], "model": ["ltx2-tiny"], "model_path": ["/p"], "lora": ["l.pt"],
+             "judge": ["qwen-vl-tiny"], "judge_path": ["/j"], "dataset": ["d.jsonl"], "offload_text": [],
+             "offload_judge": [], "batch": ["5"], "condition": ["vlm"], "n": ["3"], "seed": ["2"],
+             "error_rate": ["0.1"], "steps": ["3"], "guidance": ["2"], "png": [tmp_path / "p.png"],
+             "gallery": [tmp_path / "g.png"],
+             "executor": ["e.pt"], "json": [], "compare": ["A=r"], "handoff": ["task,vlm"], "rank_rdistill": [],
+             "group": ["4"], "pointing": [], "relate_probe": ["forced"]}
+    own = [f"--{mode}", *value[mode]] if mode else []
+
+    def called(argv):
+        calls.clear()
+        with pytest.raises(_Reached):
+            bench.main([str(a) for a in argv])
+        return list(calls)
+    plain = called(own)
+    reads = bench.DIAGNOSTIC_READS.get(mode, [k for k in value if k not in (*bench.DIAGNOSTIC_READS, "group",
+                                                                           "executor")])
+    for k in value:
+        if k == mode or (mode is None and k in bench.DIAGNOSTIC_READS):      # (those others are modes of their own)
+            continue
+        argv = [*own, f"--{k}", *value[k]]
+        if k in ("model_path", "lora", "offload_text") and mode is None:
+            argv = ["--model", "ltx2-tiny", *argv]       # a real model's flags, with a real model
+        if k in ("judge_path", "offload_judge") and mode is None:
+            argv = ["--judge", "qwen-vl-tiny", *argv]    # a VLM judge's, with a VLM judge
+        if k not in reads:
+            exit_2(bench.main, argv, capsys)
+        elif k not in ("png", "json"):
+            assert called(argv) != plain, k
