@@ -327,6 +327,12 @@ READ_BY = {
                     ("rl",)),
     "stage": (), "toy": (),
 }
+# The rl stage's trainer flags and the trainers (rl.OBJECTIVES) that read them through rl_config; set for another
+# --trainer they are refused as READ_BY's are (tests/test_train.py checks this against rl.py).
+TRAINER_READS = {**dict.fromkeys(("clip_range", "kl_beta"), ("flow-grpo", "awm")),
+                 **dict.fromkeys(("awm_timesteps", "awm_times"), ("awm", "nft")),
+                 **dict.fromkeys(("awm_weighting", "awm_ratio", "ghuber_power"), ("awm",)),
+                 "nft_beta": ("nft",)}
 
 
 def train_steps(args: Args) -> int:
@@ -370,8 +376,21 @@ def parse_args(argv=None) -> Args:
     for f in dataclasses.fields(Args):      # nan passes every range check below (each comparison is False)
         if f.type in ("float", float) and not np.isfinite(getattr(args, f.name)):
             p.error(f"--{f.name} must be a finite number, got {getattr(args, f.name)}")
-    ignored = [name for name, stages in READ_BY.items()       # refused below, after the checks that say more
-               if stages and args.stage not in stages and getattr(args, name) != getattr(Args(), name)]
+    # flags set (not to their default) where nothing reads them: (flag, what reads it, what was chosen instead),
+    # refused below, after the checks that say more
+    default, sde = Args(), args.sampler == "sde" or args.trainer in rl.NEEDS_SDE
+    given = lambda name: getattr(args, name) != getattr(default, name)  # noqa: E731
+    ignored = [(name, "--stage " + " and ".join(stages), f"--stage {args.stage}") for name, stages in READ_BY.items()
+               if stages and args.stage not in stages and given(name)]
+    ignored += [(name, "--trainer " + " and ".join(trainers), f"--trainer {args.trainer}")
+                for name, trainers in TRAINER_READS.items() if args.trainer not in trainers and given(name)]
+    ignored += [(name, readers, chosen) for name, readers, chosen, unread in (
+        ("ghuber_power", "--awm_weighting ghuber", f"--awm_weighting {args.awm_weighting}",
+         args.awm_weighting != "ghuber"),
+        ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
+        ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
+        ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema))
+        if unread and given(name)]
     if args.seed < 0:
         p.error(f"--seed must be >= 0 (numpy's generators take no negative seed), got {args.seed}")
     if args.eval_every == 0:
@@ -510,9 +529,9 @@ def parse_args(argv=None) -> Args:
     for name, directory in (("run_dir", True), ("eval_cache", True), ("out", False)):
         if getattr(args, name) and (bad := bench.output_path_error(getattr(args, name), f"--{name}", directory)):
             p.error(bad)
-    for name in ignored:
+    for name, readers, chosen in ignored:
         flag = f"--no-{name}" if getattr(args, name) is False else f"--{name}"      # a default-on switch
-        p.error(f"{flag} is read by --stage {' and '.join(READ_BY[name])} only: --stage {args.stage} would ignore it")
+        p.error(f"{flag} is read with {readers} only: {chosen} would ignore it")
     return args
 
 

@@ -603,48 +603,70 @@ def test_eval_every_defaults_by_stage_and_a_given_value_stands():
         every("--toy", "--eval_every", "-1")
 
 
-def _flags_each_stage_reads() -> dict:
-    """{stage: the Args fields read as args.NAME in train.py by the stage's function and every train.py function it
-    calls, transitively}: what the code reads, found from its syntax tree, not by running it."""
-    tree = ast.parse(open(os.path.join(ROOT, "train.py")).read())
-    funcs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
-
-    def reads(name, seen):
+def _reads(path: str, var: str, entry: str) -> set:
+    """The attributes of `var` (var.NAME) that function `entry` of the module at `path` reads, itself or through the
+    module's functions it calls, transitively: what the code reads, found from its syntax tree, not by running it."""
+    funcs = {n.name: n for n in ast.parse(open(os.path.join(ROOT, path)).read()).body
+             if isinstance(n, ast.FunctionDef)}
+    found, todo, seen = set(), [entry], set()
+    while todo:
+        name = todo.pop()
         if name in seen:
-            return set()
+            continue
         seen.add(name)
-        found = set()
         for node in ast.walk(funcs[name]):
-            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "args":
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == var:
                 found.add(node.attr)
             elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in funcs:
-                found |= reads(node.func.id, seen)
-        return found
-    fields = {f.name for f in dataclasses.fields(train.Args)}
-    return {stage: reads(fn.__name__, set()) & fields for stage, fn in train.STAGES.items()}
+                todo.append(node.func.id)
+    return found
 
 
 def test_read_by_names_the_stages_whose_code_reads_each_flag():
     """train.READ_BY, which parse_args enforces, is what each stage's code reads: a stage that reads a flag the
     table denies it would refuse a working flag; one the table grants a flag it never reads would ignore it."""
-    read = _flags_each_stage_reads()
+    read = {stage: _reads("train.py", "args", fn.__name__) for stage, fn in train.STAGES.items()}
     for f in dataclasses.fields(train.Args):
         assert set(train.READ_BY.get(f.name, train.STAGES)) == {s for s in train.STAGES if f.name in read[s]}, f.name
 
 
+def test_trainer_reads_names_the_trainers_whose_objective_reads_each_flag():
+    """train.TRAINER_READS likewise, against rl.py: the flags rl_config passes as RLConfig fields, and the fields
+    each trainer's objective reads (cfg.NAME)."""
+    call = next(n for n in ast.walk(ast.parse(open(os.path.join(ROOT, "train.py")).read()))
+                if isinstance(n, ast.Call) and getattr(n.func, "attr", None) == "RLConfig")
+    flag_of = {kw.arg: kw.value.attr for kw in call.keywords}           # RLConfig field -> train.py flag
+    assert set(flag_of) == {f.name for f in dataclasses.fields(train.rl.RLConfig)}
+    read = {name: _reads("rl.py", "cfg", fn.__name__) for name, fn in train.rl.OBJECTIVES.items()}
+    for field, flag in flag_of.items():
+        trainers = train.rl.OBJECTIVES
+        assert set(train.TRAINER_READS.get(flag, trainers)) == {t for t in trainers if field in read[t]}, flag
+
+
 @pytest.mark.parametrize("flag, wrong, right, msg", [
-    (["--width", "64"], "rl", "pretrain", "--width is read by --stage pretrain only: --stage rl would ignore it"),
-    (["--variant", "off"], "rl", "distill", "--variant is read by --stage distill only: --stage rl"),
-    (["--beta_d", "0"], "distill", "rl", "--beta_d is read by --stage rl only: --stage distill"),
-    (["--init", "b.pt"], "pretrain", "rl", "--init is read by --stage distill and rl only: --stage pretrain"),
-    (["--no-evidence_lead"], "rl", "pretrain", "--no-evidence_lead is read by --stage pretrain only"),
-    (["--log_every", "5"], "rl", "distill", "--log_every is read by --stage pretrain and distill only"),
+    (["--width", "64"], ["--stage", "rl"], ["--stage", "pretrain"],
+     "--width is read with --stage pretrain only: --stage rl would ignore it"),
+    (["--variant", "off"], [], ["--stage", "distill"], "--variant is read with --stage distill only: --stage rl"),
+    (["--beta_d", "0"], ["--stage", "distill"], [], "--beta_d is read with --stage rl only: --stage distill"),
+    (["--init", "b.pt"], ["--stage", "pretrain"], [], "--init is read with --stage distill and rl only"),
+    (["--no-evidence_lead"], [], ["--stage", "pretrain"], "--no-evidence_lead is read with --stage pretrain only"),
+    (["--log_every", "5"], [], ["--stage", "distill"], "--log_every is read with --stage pretrain and distill only"),
+    (["--nft_beta", "2"], [], ["--trainer", "nft"], "--nft_beta is read with --trainer nft only: --trainer awm"),
+    (["--awm_timesteps", "3"], ["--trainer", "grpo"], ["--trainer", "nft"],
+     "--awm_timesteps is read with --trainer awm and nft only: --trainer grpo would ignore it"),
+    (["--ghuber_power", "0.3"], ["--awm_weighting", "t"], [], "--ghuber_power is read with --awm_weighting ghuber"),
+    (["--noise_level", "0.5"], [], ["--sampler", "sde"], "--noise_level is read with SDE rollouts"),
+    (["--noise_level", "0.5"], ["--trainer", "nft"], ["--trainer", "grpo"], "ODE rollouts would ignore it"),
+    (["--beta_phi", "0.5"], [], ["--alternate", "2"], "--beta_phi is read with --alternate N"),
+    (["--executor_ema_every", "2"], [], ["--executor_ema", "0.9"], "--executor_ema_every is read with --executor_ema"),
 ])
-def test_a_flag_the_stage_would_ignore_is_refused(flag, wrong, right, msg, capsys):
+def test_a_flag_nothing_would_read_is_refused(flag, wrong, right, msg, capsys):
+    """A flag set where the chosen stage, trainer or setting does not read it: exit 2 naming what would read it;
+    the same flag where that is chosen: accepted."""
     with pytest.raises(SystemExit) as e:
-        train.parse_args(["--stage", wrong, *flag])
+        train.parse_args([*wrong, *flag])
     assert e.value.code == 2 and msg in capsys.readouterr().err
-    train.parse_args(["--stage", right, *flag])          # where it is read: accepted
+    train.parse_args([*right, *flag])
 
 
 def test_the_final_table_names_the_fig5_setting_the_flags_select():
