@@ -335,6 +335,32 @@ TRAINER_READS = {**dict.fromkeys(("clip_range", "kl_beta"), ("flow-grpo", "awm")
                  "nft_beta": ("nft",)}
 
 
+def unread_flags(args: Args) -> list:
+    """The flags set (to anything but their default) that nothing in this run would read, each as (name, what
+    reads it, what was chosen instead): a flag of another --stage (READ_BY) or --trainer (TRAINER_READS), or one
+    that tunes a setting this run does not use. parse_args refuses them."""
+    default, variants = Args(), set(args.variant.split(","))
+    sde = args.sampler == "sde" or args.trainer in rl.NEEDS_SDE
+    no_video_loss = args.stage == "distill" and not variants & {"sft", "paired"}    # the SFT variants have one
+    no_rollouts = args.stage == "distill" and variants <= {"sft", "paired"}         # the others roll out
+    candidates = [  # (flag, what reads it, what this run chose instead, whether that leaves the flag unread)
+        *((name, "--stage " + " and ".join(stages), f"--stage {args.stage}", args.stage not in stages)
+          for name, stages in READ_BY.items() if stages),
+        *((name, "--trainer " + " and ".join(trainers), f"--trainer {args.trainer}", args.trainer not in trainers)
+          for name, trainers in TRAINER_READS.items()),
+        ("ghuber_power", "--awm_weighting ghuber", f"--awm_weighting {args.awm_weighting}",
+         args.awm_weighting != "ghuber"),
+        ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
+        ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
+        ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema),
+        *((name, "--stage pretrain, or --variant sft or paired (their video loss)", f"--variant {args.variant}",
+           no_video_loss) for name in ("motion_weight", "loss_power")),
+        ("train_steps", "the rl stage and --variant off, on or dmd (their rollouts)", f"--variant {args.variant}",
+         no_rollouts)]
+    return [(name, readers, chosen) for name, readers, chosen, unread in candidates
+            if unread and getattr(args, name) != getattr(default, name)]
+
+
 def train_steps(args: Args) -> int:
     """Euler steps of a training rollout: --train_steps, or --sample_steps (evaluation's) when it is 0."""
     return args.train_steps or args.sample_steps
@@ -376,21 +402,7 @@ def parse_args(argv=None) -> Args:
     for f in dataclasses.fields(Args):      # nan passes every range check below (each comparison is False)
         if f.type in ("float", float) and not np.isfinite(getattr(args, f.name)):
             p.error(f"--{f.name} must be a finite number, got {getattr(args, f.name)}")
-    # flags set (not to their default) where nothing reads them: (flag, what reads it, what was chosen instead),
-    # refused below, after the checks that say more
-    default, sde = Args(), args.sampler == "sde" or args.trainer in rl.NEEDS_SDE
-    given = lambda name: getattr(args, name) != getattr(default, name)  # noqa: E731
-    ignored = [(name, "--stage " + " and ".join(stages), f"--stage {args.stage}") for name, stages in READ_BY.items()
-               if stages and args.stage not in stages and given(name)]
-    ignored += [(name, "--trainer " + " and ".join(trainers), f"--trainer {args.trainer}")
-                for name, trainers in TRAINER_READS.items() if args.trainer not in trainers and given(name)]
-    ignored += [(name, readers, chosen) for name, readers, chosen, unread in (
-        ("ghuber_power", "--awm_weighting ghuber", f"--awm_weighting {args.awm_weighting}",
-         args.awm_weighting != "ghuber"),
-        ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
-        ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
-        ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema))
-        if unread and given(name)]
+    ignored = unread_flags(args)       # refused below, after the checks that say more
     if args.seed < 0:
         p.error(f"--seed must be >= 0 (numpy's generators take no negative seed), got {args.seed}")
     if args.eval_every == 0:

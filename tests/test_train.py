@@ -659,6 +659,14 @@ def test_trainer_reads_names_the_trainers_whose_objective_reads_each_flag():
     (["--noise_level", "0.5"], ["--trainer", "nft"], ["--trainer", "grpo"], "ODE rollouts would ignore it"),
     (["--beta_phi", "0.5"], [], ["--alternate", "2"], "--beta_phi is read with --alternate N"),
     (["--executor_ema_every", "2"], [], ["--executor_ema", "0.9"], "--executor_ema_every is read with --executor_ema"),
+    (["--motion_weight", "5"], ["--stage", "distill", "--variant", "off,on"],
+     ["--stage", "distill", "--variant", "on,sft"],
+     "--motion_weight is read with --stage pretrain, or --variant sft or paired (their video loss) only: --variant"),
+    (["--loss_power", "2"], ["--stage", "distill"], ["--stage", "distill", "--variant", "paired"],
+     "--loss_power is read"),
+    (["--train_steps", "3"], ["--stage", "distill", "--variant", "sft,paired"],
+     ["--stage", "distill", "--variant", "dmd"],
+     "--train_steps is read with the rl stage and --variant off, on or dmd (their rollouts) only: --variant sft"),
 ])
 def test_a_flag_nothing_would_read_is_refused(flag, wrong, right, msg, capsys):
     """A flag set where the chosen stage, trainer or setting does not read it: exit 2 naming what would read it;
