@@ -100,6 +100,8 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
             return
         name, seed, d, cmd = item
         os.makedirs(d, exist_ok=True)
+        if os.path.isfile(os.path.join(d, "state.pt")):   # an interrupted run of it: done again from the start,
+            os.remove(os.path.join(d, "state.pt"))        # which train.py refuses while an unfinished state is there
         t0 = time.time()
         with open(os.path.join(d, "log.txt"), "w") as log:
             rc = subprocess.run(cmd + ["--threads", str(max(1, 2 // jobs))], stdout=log, stderr=subprocess.STDOUT).returncode

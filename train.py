@@ -1318,6 +1318,22 @@ def load_state(path: str, args: Args) -> dict:
     return state
 
 
+def refuse_to_overwrite(path: str) -> None:
+    """A run started afresh (no --resume) in a --run_dir whose state.pt is an unfinished run's would overwrite that
+    state at its first save, and the unfinished run could never be resumed: refused, naming the ways on. A finished
+    run's state (its step = its --steps), or one that cannot be read, is overwritten as the run's other files are."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        step, steps = int(state["step"]), int(state["args"]["steps"])
+    except Exception:  # noqa: BLE001 -- no state, or none to resume from
+        return None
+    if step < steps:
+        raise ValueError(f"--run_dir {os.path.dirname(path) or '.'!r} holds an unfinished run (its state.pt: step "
+                         f"{step} of {steps}); continue it with --resume and its settings, give this run another "
+                         f"--run_dir, or delete {path!r} to start afresh here")
+    return None
+
+
 def load_base(args: Args):
     """The base video model named by --model (the Executor and, adapters off, the Demonstrator)."""
     if args.model == "toy":
@@ -1397,7 +1413,7 @@ def rl_stage(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     state_path = run_state_path(args)
-    state = load_state(state_path, args) if args.resume else None
+    state = load_state(state_path, args) if args.resume else refuse_to_overwrite(state_path)
     start = time.time()
     global JUDGE, BENCH
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written

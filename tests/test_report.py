@@ -222,6 +222,7 @@ def test_ctrl_c_starts_no_more_runs_and_keeps_the_finished(tmp_path, monkeypatch
         stage, d = cmd[cmd.index("--stage") + 1], cmd[cmd.index("--run_dir") + 1]
         calls.append(os.path.basename(d))
         if len(calls) == 2:
+            open(os.path.join(d, "state.pt"), "w").write("x")                  # what the interrupted run saved
             signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)   # Ctrl-C reaches report.py ...
             return types.SimpleNamespace(returncode=130)                         # ... and its train.py
         open(os.path.join(d, report.SUMMARY[stage]), "w").write("{}")
@@ -239,12 +240,16 @@ def test_ctrl_c_starts_no_more_runs_and_keeps_the_finished(tmp_path, monkeypatch
     assert f"interrupted; the runs that finished are kept in {out / 'runs'}" in err
     assert len(calls) == 2 < len(report.EXPERIMENTS), calls
     assert sum(os.path.isfile(out / "runs" / c / "report_cmd.json") for c in calls) == 1
-    # a run interrupted while report.py was not (its SIGINT ignored, or the run's alone): no more runs start either
+    # the next report runs the interrupted one again from the start, its state.pt removed (train.py would refuse to
+    # start afresh over an unfinished run's state); a run interrupted while report.py was not (its SIGINT ignored, or
+    # the run's alone): no more runs start either
+    interrupted = out / "runs" / calls[1]
     calls.clear()
-    monkeypatch.setattr(report.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or types.SimpleNamespace(
+    monkeypatch.setattr(report.subprocess, "run", lambda cmd, **kw: calls.append(
+        (cmd[cmd.index("--run_dir") + 1], os.listdir(cmd[cmd.index("--run_dir") + 1]))) or types.SimpleNamespace(
         returncode=130))
     assert "failed (exit 130)" in exit_2(report.main, [out, "--quick", "--seeds", "0", "--jobs", "1"], capsys, code=1)
-    assert len(calls) == 1, len(calls)
+    assert calls == [(str(interrupted), ["log.txt"])], calls
 
 
 def test_report_bad_input(tmp_path, monkeypatch, capsys):

@@ -329,6 +329,14 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume").returncode == 0
     err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume"], capsys)
     assert "already reached step 2 of --steps 2" in err       # a finished run: nothing to resume
+    # started afresh over a run's state: a finished run's is overwritten; an unfinished one's is refused and kept
+    assert train.refuse_to_overwrite(str(d / "state.pt")) is None
+    state = torch.load(d / "state.pt", weights_only=True)
+    state["args"]["steps"] = 3                                # as if stopped at step 2 of 3
+    torch.save(state, d / "state.pt")
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "4", "--run_dir", d], capsys)
+    assert "holds an unfinished run (its state.pt: step 2 of 3); continue it with --resume" in err, err
+    assert torch.load(d / "state.pt", weights_only=True)["args"]["steps"] == 3
     (d / "state.pt").write_bytes(b"garbage")
     r = run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume")
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
