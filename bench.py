@@ -871,8 +871,6 @@ def main(argv=None):
         p.error("--guidance applies to one evaluation: not with --handoff, --rank_rdistill, --pointing or --gallery")
     if a.group < 2:
         p.error(f"--group must be >= 2 (a rank needs two rollouts), got {a.group}")
-    if a.handoff is not None and a.rank_rdistill:
-        p.error("--handoff and --rank_rdistill are two different diagnostics: give one")
     if a.relate_probe and (a.handoff is not None or a.rank_rdistill or (a.pointing and a.relate_probe != "forced")):
         p.error("--relate_probe alters one evaluation (or, forced, --pointing): not with --handoff, --rank_rdistill, "
                 "or --pointing with zeroed (the heads still look where they did; only their channels are gone)")

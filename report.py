@@ -100,8 +100,9 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
             return
         name, seed, d, cmd = item
         os.makedirs(d, exist_ok=True)
-        if os.path.isfile(os.path.join(d, "state.pt")):   # an interrupted run of it: done again from the start,
-            os.remove(os.path.join(d, "state.pt"))        # which train.py refuses while an unfinished state is there
+        state = os.path.join(d, "state.pt")   # an interrupted run's: the run is done again from the start, which
+        if os.path.isfile(state):               # train.py refuses while an unfinished run's state is there
+            os.remove(state)
         t0 = time.time()
         with open(os.path.join(d, "log.txt"), "w") as log:
             rc = subprocess.run(cmd + ["--threads", str(max(1, 2 // jobs))], stdout=log, stderr=subprocess.STDOUT).returncode

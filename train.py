@@ -1326,12 +1326,11 @@ def refuse_to_overwrite(path: str) -> None:
         state = torch.load(path, map_location="cpu", weights_only=True)
         step, steps = int(state["step"]), int(state["args"]["steps"])
     except Exception:  # noqa: BLE001 -- no state, or none to resume from
-        return None
+        return
     if step < steps:
         raise ValueError(f"--run_dir {os.path.dirname(path) or '.'!r} holds an unfinished run (its state.pt: step "
                          f"{step} of {steps}); continue it with --resume and its settings, give this run another "
                          f"--run_dir, or delete {path!r} to start afresh here")
-    return None
 
 
 def load_base(args: Args):
@@ -1413,7 +1412,9 @@ def rl_stage(args: Args) -> dict:
     rng = seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     state_path = run_state_path(args)
-    state = load_state(state_path, args) if args.resume else refuse_to_overwrite(state_path)
+    if not args.resume:
+        refuse_to_overwrite(state_path)
+    state = load_state(state_path, args) if args.resume else None
     start = time.time()
     global JUDGE, BENCH
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written

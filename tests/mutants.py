@@ -431,7 +431,7 @@ MUTANTS = {
          "the vague caption of the toy VLM's plan"),
     ]),
     "report.py": (REPORT, [
-        ('        if os.path.isfile(os.path.join(d, "state.pt")):', '        if False:',
+        ('        if os.path.isfile(state):  ', '        if False:  ',
          "report.py running an interrupted run again over its state (train.py refuses)"),
         ('        if stop.is_set():\n            return\n', '', "report.py starting the queued runs after Ctrl-C"),
         ('        if rc in (130, -signal.SIGINT):', '        if False:',
@@ -899,8 +899,6 @@ MUTANTS = {
          '    if False:', '--guidance with a diagnostic accepted'),
         ('    if a.group < 2:',
          '    if False:', "bench.py's --group 1 accepted"),
-        ('    if a.handoff is not None and a.rank_rdistill:',
-         '    if False:', '--handoff with --rank_rdistill accepted'),
         ('    if a.relate_probe and (a.handoff is not None or a.rank_rdistill or (a.pointing and ',
          '    if False and (a.handoff is not None or a.rank_rdistill or (a.pointing and ', '--relate_probe with --handoff accepted'),
         ('    if a.executor and not a.gallery:',
