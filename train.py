@@ -340,7 +340,9 @@ def unread_flags(args: Args) -> list:
     reads it, what was chosen instead): a flag of another --stage (READ_BY) or --trainer (TRAINER_READS), or one
     that tunes a setting this run does not use. parse_args refuses them."""
     default, variants = Args(), set(args.variant.split(","))
-    sde = args.sampler == "sde" or args.trainer in rl.NEEDS_SDE
+    off = args.stage == "rl" and args.executor_update == "off"    # Fig. 5 (iii): the Executor rounds are Eq. 3 only
+    judged = not (off and not args.alternate)     # without Alg. 2's Demonstrator rounds nothing is judged or rewarded
+    sde = judged and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE)
     no_video_loss = args.stage == "distill" and not variants & {"sft", "paired"}    # the SFT variants have one
     no_rollouts = args.stage == "distill" and variants <= {"sft", "paired"}         # the others roll out
     candidates = [  # (flag, what reads it, what this run chose instead, whether that leaves the flag unread)
@@ -356,7 +358,14 @@ def unread_flags(args: Args) -> list:
         *((name, "--stage pretrain, or --variant sft or paired (their video loss)", f"--variant {args.variant}",
            no_video_loss) for name in ("motion_weight", "loss_power")),
         ("train_steps", "the rl stage and --variant off, on or dmd (their rollouts)", f"--variant {args.variant}",
-         no_rollouts)]
+         no_rollouts),
+        *((name, "RL rounds (--executor_update wmsd, or --alternate N's Demonstrator rounds)",
+           "--executor_update off without --alternate", not judged)
+          for name in ("trainer", *TRAINER_READS, "sampler", "lambda_task", "lambda_cons", "task_reward", "adv_agg",
+                       "adv_clip")),
+        *((name, "--executor_update wmsd (Eq. 12's rounds)", "--executor_update off", off)
+          for name in ("lambda_distill", "distill_reward", "beta_d", "inner_epochs")),
+        ("task_reward", "--lambda_task > 0 (r_task's weight)", "--lambda_task 0", args.lambda_task == 0)]
     return [(name, readers, chosen) for name, readers, chosen, unread in candidates
             if unread and getattr(args, name) != getattr(default, name)]
 
@@ -441,8 +450,10 @@ def parse_args(argv=None) -> Args:
                  "distill_motion_weight"):
         if getattr(args, name) <= 0:
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
-    if args.lambda_task + args.lambda_distill + args.lambda_cons == 0:
-        p.error("at least one of --lambda_task, --lambda_distill, --lambda_cons must be > 0")
+    weighed = ("lambda_task", "lambda_cons") + (("lambda_distill",) if args.executor_update == "wmsd" else ())
+    if sum(getattr(args, name) for name in weighed) == 0 and not (args.executor_update == "off" and not args.alternate):
+        p.error(f"at least one of {', '.join('--' + name for name in weighed)} must be > 0"
+                + ("" if args.executor_update == "wmsd" else " (Alg. 2's Demonstrator rounds weigh no r_distill)"))
     if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):
         p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:

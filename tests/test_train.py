@@ -140,9 +140,11 @@ def _one_step(tiny_ckpt, tmp_path, **kw):
                                    {"executor_update": "off"}, {"alternate": 1}],
                          ids=["awm", "flow-grpo", "nft", "off-policy", "demonstrator-round"])
 def test_micro_batches_make_the_one_pass_update(tiny_ckpt, tmp_path, flags):
-    # lambda_distill 0 for the same reason as in the two-process test; r_distill itself is compared below
-    one, grad1, gen1, s1 = _one_step(tiny_ckpt, tmp_path, lambda_distill=0, **flags)
-    mb, grad3, gen3, s3 = _one_step(tiny_ckpt, tmp_path, lambda_distill=0, micro_batch=3, **flags)
+    # lambda_distill 0 for the same reason as in the two-process test (the off-policy rounds read no r_distill);
+    # r_distill itself is compared below
+    flags = flags if flags.get("executor_update") == "off" else {"lambda_distill": 0, **flags}
+    one, grad1, gen1, s1 = _one_step(tiny_ckpt, tmp_path, **flags)
+    mb, grad3, gen3, s3 = _one_step(tiny_ckpt, tmp_path, micro_batch=3, **flags)
     assert max(s3) <= 3 * 2 < max(s1)                       # passes of at most 3 rollouts (x 2 re-noising times)
     for k in ("A", "r_task", "r_cons", "solved"):
         if k in one:
@@ -390,6 +392,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                        "--distill_motion_weight weighs Eq. 4"),
                       (["--model", "ltx2-tiny", "--distill_motion_weight", "2"], "first frame: toy model only"),
                       (["--lambda_task", "0", "--lambda_distill", "0", "--lambda_cons", "0"], "at least one of"),
+                      (["--alternate", "2", "--executor_update", "off", "--lambda_task", "0", "--lambda_cons", "0"],
+                       "at least one of --lambda_task, --lambda_cons must be > 0 (Alg. 2's Demonstrator rounds weigh"),
                       (["--sampler", "sde", "--noise_level", "0"], "--noise_level must be > 0 for SDE rollouts"),
                       (["--trainer", "flow-grpo", "--noise_level", "0"], "--noise_level must be > 0 for SDE"),
                       (["--error_rate", "1.5"], "--error_rate must lie in [0, 1]"),
@@ -675,6 +679,16 @@ def test_trainer_reads_names_the_trainers_whose_objective_reads_each_flag():
     (["--train_steps", "3"], ["--stage", "distill", "--variant", "sft,paired"],
      ["--stage", "distill", "--variant", "dmd"],
      "--train_steps is read with the rl stage and --variant off, on or dmd (their rollouts) only: --variant sft"),
+    *((flag, ["--executor_update", "off"], ["--executor_update", "off", "--alternate", "2"],
+       f"{flag[0]} is read with RL rounds (--executor_update wmsd, or --alternate N's Demonstrator rounds) only: "
+       "--executor_update off without --alternate would ignore it")
+      for flag in (["--trainer", "flow-grpo"], ["--clip_range", "0.1"], ["--sampler", "sde"], ["--lambda_task", "0.5"],
+                   ["--lambda_cons", "0"], ["--task_reward", "attributed"], ["--adv_agg", "sum"], ["--adv_clip", "2"])),
+    *((flag, ["--executor_update", "off", "--alternate", "2"], ["--alternate", "2"],
+       f"{flag[0]} is read with --executor_update wmsd (Eq. 12's rounds) only: --executor_update off would ignore it")
+      for flag in (["--lambda_distill", "0.5"], ["--beta_d", "0.1"], ["--inner_epochs", "2"])),
+    (["--task_reward", "attributed"], ["--lambda_task", "0"], ["--lambda_task", "0.5"],
+     "--task_reward is read with --lambda_task > 0 (r_task's weight) only: --lambda_task 0 would ignore it"),
 ])
 def test_a_flag_nothing_would_read_is_refused(flag, wrong, right, msg, capsys):
     """A flag set where the chosen stage, trainer or setting does not read it: exit 2 naming what would read it;
@@ -746,6 +760,38 @@ def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tin
     _one_step(tiny_ckpt, tmp_path, executor_update="off")
     ((_, _, c, _), kw, _), ((_, _, c_E, c_D, *_), _, _) = rollouts[-1], losses[-1]
     assert kw["demonstrator"] and c is c_D and not torch.equal(c_E["ids"], c_D["ids"])
+
+
+def test_the_flags_refused_under_executor_update_off_change_nothing_in_its_rounds(tiny_ckpt, tmp_path, monkeypatch):
+    """train.unread_flags' rules for Fig. 5 (iii), checked against the code: each flag it refuses under
+    --executor_update off leaves the Executor's off-policy round (loss, LoRA gradients, random stream) exactly as it
+    was, and each it refuses even with --alternate leaves the Demonstrator round so too. A flag each round reads
+    (Eq. 3's --distill_motion_weight; the Demonstrator's --trainer) changes it: the comparison sees a flag read."""
+    changed = {"trainer": "flow-grpo", "clip_range": 0.1, "kl_beta": 0.5, "awm_timesteps": 3, "awm_times": "grid",
+               "awm_weighting": "t", "awm_ratio": "sum_first", "nft_beta": 2, "sampler": "sde", "lambda_task": 0.5,
+               "lambda_cons": 0.5, "task_reward": "attributed", "adv_agg": "sum", "adv_clip": 2,
+               "lambda_distill": 0.5, "beta_d": 0.1, "inner_epochs": 2, "distill_motion_weight": 2}
+    off_only = ("lambda_distill", "beta_d", "inner_epochs")
+
+    def refused(**kw):
+        args = dataclasses.replace(_args(tiny_ckpt, tmp_path), executor_update="off", **kw)
+        return {name for name, *_ in train.unread_flags(args)}
+
+    assert refused(**changed) == set(changed) - {"distill_motion_weight"}
+    judged = {k: v for k, v in changed.items() if k not in train.TRAINER_READS}   # not another trainer's flags
+    assert refused(alternate=2, **judged) == set(off_only)
+    monkeypatch.setattr(train, "unread_flags", lambda args: [])      # so that parse_args takes them all
+    # the Executor's round, then Alg. 2's Demonstrator round (_one_step runs it when alternate is set); the unread
+    # flags all at once (one run, not one each: their effects, were there any, would not cancel to the last bit)
+    for alternate, unread, read in ((0, set(changed) - {"distill_motion_weight"}, "distill_motion_weight"),
+                                    (2, off_only, "trainer")):
+        rec0, grads0, gen0, _ = _one_step(tiny_ckpt, tmp_path, executor_update="off", alternate=alternate)
+        for names in (unread, [read]):
+            rec, grads, gen, _ = _one_step(tiny_ckpt, tmp_path, executor_update="off", alternate=alternate,
+                                           **{name: changed[name] for name in names})
+            same = (rec["loss"] == rec0["loss"] and torch.equal(gen, gen0)
+                    and all(torch.equal(g, h) for g, h in zip(grads, grads0)))
+            assert same == (names != [read]), (alternate, names)
 
 
 def test_distill_variants_train_on_the_states_and_videos_their_objective_names(tiny_ckpt, tmp_path, monkeypatch):
