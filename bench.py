@@ -68,6 +68,7 @@ DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases (train.py's too)
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction",
               "oracle_direction")
+VLM_CONDITIONS = ("vlm", "instruction")   # the prompts made from the toy VLM's D: only they read --error_rate
 PROMPT_NAMES = {"task": "T", "vlm": "the toy VLM's D", "oracle": "the error-free D", "vague": "a vague caption",
                 "empty": "an empty prompt", "goal": "T's words as a pretraining goal caption",
                 "instruction": "the toy VLM's D in the task's form",
@@ -884,6 +885,13 @@ def main(argv=None):
             p.error(f"--{mode} and --{k} are two different diagnostics: give one")
         p.error(f"--{k} is not read by --{mode}: it would be ignored" if mode else
                 "--group is read by --rank_rdistill only: without it, it would be ignored")
+    prompts = set(a.handoff.split(",")) if a.handoff is not None else {a.condition}
+    if a.error_rate != DEFAULT_ERROR_RATE and not a.gallery and (a.dataset or not prompts & set(VLM_CONDITIONS)):
+        chosen = f"--handoff {a.handoff}" if a.handoff is not None else f"--condition {a.condition}"
+        p.error("--error_rate sets the toy VLM's errors in its D: a --dataset bench's D is its file's, so it would "
+                "be ignored" if a.dataset else
+                f"--error_rate sets the toy VLM's errors in its D: it is read with --condition (or --handoff) "
+                f"{' or '.join(VLM_CONDITIONS)}, or --gallery (its Demonstrator row), only: {chosen} would ignore it")
     if a.compare:
         try:
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}

@@ -705,8 +705,7 @@ MUTANTS = {
                              "tests/test_train.py::test_a_batch_shards_into_equal_contiguous_shares_or_is_refused",
                              "tests/test_train.py::test_ctrl_c_ends_with_one_line_on_what_is_kept"], [
         ('    except KeyboardInterrupt:  ', '    except ZeroDivisionError:  ', "Ctrl-C ending train.py in a traceback"),
-        ('    weighed = ("lambda_task", "lambda_cons") + (("lambda_distill",) if args.executor_update == "wmsd" else ())',
-         '    weighed = ("lambda_task", "lambda_cons", "lambda_distill")',
+        ('(("lambda_distill",) if args.executor_update == "wmsd" else ())', '("lambda_distill",)',
          "Demonstrator rounds that weigh no reward accepted (r_distill's weight counted, which they do not read)"),
         ('if args.stage == "rl" and ours else', 'if args.stage == "rl" else',
          "Ctrl-C pointing to a state that is not there"),
@@ -850,6 +849,7 @@ MUTANTS = {
     "bench.py (diagnostics' flags)": (["tests/test_scripts.py::test_bad_input_gives_one_clear_error"] + [
         f"tests/test_scripts.py::test_{name}" for name in (
             "each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest", "compare_runs_on_fake_runs",
+            "error_rate_is_read_with_the_prompts_made_from_the_toy_vlms_d_only",
             "handoff_switches_the_prompt_at_the_grid_time", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws",
             "gallery_draws_the_videos_the_bench_judges")], [
         ('    "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json"),',
@@ -866,6 +866,14 @@ MUTANTS = {
         ('        if k in DIAGNOSTIC_READS:\n            p.error(f"--{mode} and --{k} are two different',
          '        if False:\n            p.error(f"--{mode} and --{k} are two different',
          "two diagnostics at once: the second named a flag the first ignores"),
+        ('VLM_CONDITIONS = ("vlm", "instruction")', 'VLM_CONDITIONS = ("vlm",)',
+         "--error_rate refused with --condition instruction, whose prompt is the toy VLM's D"),
+        ('a.error_rate != DEFAULT_ERROR_RATE and not a.gallery and (a.dataset or', 'False and (a.dataset or',
+         "--error_rate accepted where no prompt reads it"),
+        ('DEFAULT_ERROR_RATE and not a.gallery and (', 'DEFAULT_ERROR_RATE and (',
+         "--gallery's --error_rate refused (its Demonstrator row reads it)"),
+        ('and (a.dataset or not prompts & set(VLM_CONDITIONS)):', 'and (not prompts & set(VLM_CONDITIONS)):',
+         "--error_rate accepted with a --dataset bench, whose D is its file's"),
     ]),
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [
         f"tests/test_scripts.py::test_{name}" for name in ("bad_input_gives_one_clear_error",

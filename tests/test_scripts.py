@@ -462,6 +462,24 @@ class _Reached(Exception):
     """Raised by a stub where bench.main's work starts: the flags were accepted."""
 
 
+def test_error_rate_is_read_with_the_prompts_made_from_the_toy_vlms_d_only(capsys):
+    """bench.VLM_CONDITIONS against the code: the bench's prompts under every other condition are the same at any
+    --error_rate (the scenes and tasks do not depend on it), under those two they differ; so bench.py refuses
+    --error_rate where no prompt reads it, as it refuses any flag that would be ignored."""
+    import bench
+    clean, noisy = bench.world.bench_pairs(0.0), bench.world.bench_pairs(0.5)
+    for c in bench.CONDITIONS:
+        same = bench.prompts_for(clean, c) == bench.prompts_for(noisy, c)
+        assert same == (c not in bench.VLM_CONDITIONS), c
+    for argv, words in ((["--error_rate", "0.5"], "--condition task would ignore it"),
+                        (["--condition", "oracle_instruction", "--error_rate", "0"], "read with --condition (or "
+                         "--handoff) vlm or instruction, or --gallery (its Demonstrator row), only"),
+                        (["--handoff", "task,oracle", "--error_rate", "0.1"], "--handoff task,oracle would ignore it"),
+                        (["--dataset", "d.jsonl", "--condition", "vlm", "--error_rate", "0.1"],
+                         "a --dataset bench's D is its file's")):
+        assert words in exit_2(bench.main, argv, capsys), argv
+
+
 @pytest.mark.parametrize("mode", [None, *__import__("bench").DIAGNOSTIC_READS])
 def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(mode, tmp_path, monkeypatch, capsys):
     """bench.DIAGNOSTIC_READS as main enforces it: every flag, set to a valid non-default value beside the diagnostic
@@ -505,7 +523,10 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
     for k in value:
         if k == mode or (mode is None and k in bench.DIAGNOSTIC_READS):      # (those others are modes of their own)
             continue
-        argv = [*own, f"--{k}", *value[k]]
+        base = own
+        if k == "error_rate" and mode in (None, "pointing", "rank_rdistill"):
+            base = [*own, "--condition", "vlm"]         # the toy VLM's errors reach only the prompts made from its D
+        argv = [*base, f"--{k}", *value[k]]
         if k in ("model_path", "lora", "offload_text") and mode is None:
             argv = ["--model", "ltx2-tiny", *argv]       # a real model's flags, with a real model
         if k in ("judge_path", "offload_judge") and mode is None:
@@ -513,4 +534,4 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
         if k not in reads:
             exit_2(bench.main, argv, capsys)
         elif k not in ("png", "json"):
-            assert called(argv) != plain, k
+            assert called(argv) != (plain if base is own else called(base)), k
