@@ -870,6 +870,9 @@ def main(argv=None):
         p.error(f"--guidance must be a finite number >= 0 (1: none, 0: the empty caption alone), got {a.guidance}")
     if a.guidance != 1 and (a.handoff is not None or a.rank_rdistill or a.pointing or a.gallery):
         p.error("--guidance applies to one evaluation: not with --handoff, --rank_rdistill, --pointing or --gallery")
+    if a.guidance != 1 and a.condition == "empty":     # v(c_u) + w (v(c) - v(c_u)) with c = c_u is v(c_u)
+        p.error("--guidance pushes the prompt's field away from the empty caption's: with --condition empty they are "
+                "one field, so it would change nothing")
     if a.group < 2:
         p.error(f"--group must be >= 2 (a rank needs two rollouts), got {a.group}")
     if a.relate_probe and (a.handoff is not None or a.rank_rdistill or (a.pointing and a.relate_probe != "forced")):

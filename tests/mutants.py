@@ -850,6 +850,7 @@ MUTANTS = {
         f"tests/test_scripts.py::test_{name}" for name in (
             "each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest", "compare_runs_on_fake_runs",
             "error_rate_is_read_with_the_prompts_made_from_the_toy_vlms_d_only",
+            "guidance_changes_nothing_given_the_empty_caption_and_is_refused_there",
             "handoff_switches_the_prompt_at_the_grid_time", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws",
             "gallery_draws_the_videos_the_bench_judges")], [
         ('    "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json"),',
@@ -874,6 +875,8 @@ MUTANTS = {
          "--gallery's --error_rate refused (its Demonstrator row reads it)"),
         ('and (a.dataset or not prompts & set(VLM_CONDITIONS)):', 'and (not prompts & set(VLM_CONDITIONS)):',
          "--error_rate accepted with a --dataset bench, whose D is its file's"),
+        ('    if a.guidance != 1 and a.condition == "empty":', '    if False:',
+         "--guidance accepted with --condition empty, where it changes nothing"),
     ]),
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [
         f"tests/test_scripts.py::test_{name}" for name in ("bad_input_gives_one_clear_error",

@@ -4,6 +4,7 @@ import json
 import os
 import types
 
+import numpy as np
 import pytest
 import torch
 
@@ -478,6 +479,20 @@ def test_error_rate_is_read_with_the_prompts_made_from_the_toy_vlms_d_only(capsy
                         (["--dataset", "d.jsonl", "--condition", "vlm", "--error_rate", "0.1"],
                          "a --dataset bench's D is its file's")):
         assert words in exit_2(bench.main, argv, capsys), argv
+
+
+def test_guidance_changes_nothing_given_the_empty_caption_and_is_refused_there(capsys):
+    """Classifier-free guidance against the empty caption (flow.guided_field) leaves the empty caption's own videos as
+    they are, at any w: the shipped base's samples are the same bit for bit; so bench.py refuses --guidance with
+    --condition empty, and takes it with a caption."""
+    import bench
+    model = bench.models.load_checkpoint(bench.models.SHIPPED_BASE)[0].eval()
+    frame0 = np.stack([p.frame0 for p in bench.world.bench_pairs(0.3)[:2]])
+    videos = [bench.models.generate(model, frame0, prompts, steps=2, seed=0, guidance=w)
+              for prompts in (["", ""], bench.prompts_for(bench.world.bench_pairs(0.3)[:2], "task")) for w in (1, 3)]
+    assert np.array_equal(videos[0], videos[1]) and not np.array_equal(videos[2], videos[3])
+    assert "with --condition empty they are one field" in exit_2(bench.main, ["--condition", "empty", "--guidance", "3"],
+                                                                 capsys)
 
 
 @pytest.mark.parametrize("mode", [None, *__import__("bench").DIAGNOSTIC_READS])
