@@ -891,10 +891,10 @@ def main(argv=None):
     prompts = set(a.handoff.split(",")) if a.handoff is not None else {a.condition}
     if a.error_rate != DEFAULT_ERROR_RATE and not a.gallery and (a.dataset or not prompts & set(VLM_CONDITIONS)):
         chosen = f"--handoff {a.handoff}" if a.handoff is not None else f"--condition {a.condition}"
-        p.error("--error_rate sets the toy VLM's errors in its D: a --dataset bench's D is its file's, so it would "
-                "be ignored" if a.dataset else
-                f"--error_rate sets the toy VLM's errors in its D: it is read with --condition (or --handoff) "
-                f"{' or '.join(VLM_CONDITIONS)}, or --gallery (its Demonstrator row), only: {chosen} would ignore it")
+        p.error("--error_rate sets the toy VLM's errors in its D: " + (
+            "a --dataset bench's D is its file's, so it would be ignored" if a.dataset else
+            f"it is read with --condition (or --handoff) {' or '.join(VLM_CONDITIONS)}, or --gallery (its "
+            f"Demonstrator row), only: {chosen} would ignore it"))
     if a.compare:
         try:
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}

@@ -335,13 +335,22 @@ TRAINER_READS = {**dict.fromkeys(("clip_range", "kl_beta"), ("flow-grpo", "awm")
                  "nft_beta": ("nft",)}
 
 
+def reward_weights(args: Args) -> tuple:
+    """The Eq. 10 weights (--lambda_*) an rl run reads: WMSD's Executor rounds weigh all three; Alg. 2's Demonstrator
+    rounds weigh r_task and r_cons (beside off-policy Executor rounds, Fig. 5 (iii), they are all that is weighed);
+    off-policy Executor rounds alone judge and weigh nothing."""
+    if args.executor_update == "wmsd":
+        return "lambda_task", "lambda_distill", "lambda_cons"
+    return ("lambda_task", "lambda_cons") if args.alternate else ()
+
+
 def unread_flags(args: Args) -> list:
     """The flags set (to anything but their default) that nothing in this run would read, each as (name, what
     reads it, what was chosen instead): a flag of another --stage (READ_BY) or --trainer (TRAINER_READS), or one
     that tunes a setting this run does not use. parse_args refuses them."""
     default, variants = Args(), set(args.variant.split(","))
     off = args.stage == "rl" and args.executor_update == "off"    # Fig. 5 (iii): the Executor rounds are Eq. 3 only
-    judged = not (off and not args.alternate)     # without Alg. 2's Demonstrator rounds nothing is judged or rewarded
+    judged = bool(reward_weights(args))     # without Alg. 2's Demonstrator rounds, off-policy rounds judge nothing
     sde = judged and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE)
     no_video_loss = args.stage == "distill" and not variants & {"sft", "paired"}    # the SFT variants have one
     no_rollouts = args.stage == "distill" and variants <= {"sft", "paired"}         # the others roll out
@@ -450,8 +459,8 @@ def parse_args(argv=None) -> Args:
                  "distill_motion_weight"):
         if getattr(args, name) <= 0:
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
-    weighed = ("lambda_task", "lambda_cons") + (("lambda_distill",) if args.executor_update == "wmsd" else ())
-    if sum(getattr(args, name) for name in weighed) == 0 and not (args.executor_update == "off" and not args.alternate):
+    weighed = reward_weights(args)    # none: unread_flags refuses any weight set
+    if weighed and sum(getattr(args, name) for name in weighed) == 0:
         p.error(f"at least one of {', '.join('--' + name for name in weighed)} must be > 0"
                 + ("" if args.executor_update == "wmsd" else " (Alg. 2's Demonstrator rounds weigh no r_distill)"))
     if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):

@@ -487,9 +487,10 @@ def test_guidance_changes_nothing_given_the_empty_caption_and_is_refused_there(c
     --condition empty, and takes it with a caption."""
     import bench
     model = bench.models.load_checkpoint(bench.models.SHIPPED_BASE)[0].eval()
-    frame0 = np.stack([p.frame0 for p in bench.world.bench_pairs(0.3)[:2]])
+    pairs = bench.world.bench_pairs(0.3)[:2]
+    frame0 = np.stack([p.frame0 for p in pairs])
     videos = [bench.models.generate(model, frame0, prompts, steps=2, seed=0, guidance=w)
-              for prompts in (["", ""], bench.prompts_for(bench.world.bench_pairs(0.3)[:2], "task")) for w in (1, 3)]
+              for prompts in (["", ""], bench.prompts_for(pairs, "task")) for w in (1, 3)]
     assert np.array_equal(videos[0], videos[1]) and not np.array_equal(videos[2], videos[3])
     assert "with --condition empty they are one field" in exit_2(bench.main, ["--condition", "empty", "--guidance", "3"],
                                                                  capsys)

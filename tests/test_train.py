@@ -772,21 +772,21 @@ def test_the_flags_refused_under_executor_update_off_change_nothing_in_its_round
                "lambda_cons": 0.5, "task_reward": "attributed", "adv_agg": "sum", "adv_clip": 2,
                "lambda_distill": 0.5, "beta_d": 0.1, "inner_epochs": 2, "distill_motion_weight": 2}
     off_only = ("lambda_distill", "beta_d", "inner_epochs")
+    unread = set(changed) - {"distill_motion_weight"}
 
     def refused(**kw):
         args = dataclasses.replace(_args(tiny_ckpt, tmp_path), executor_update="off", **kw)
         return {name for name, *_ in train.unread_flags(args)}
 
-    assert refused(**changed) == set(changed) - {"distill_motion_weight"}
+    assert refused(**changed) == unread
     judged = {k: v for k, v in changed.items() if k not in train.TRAINER_READS}   # not another trainer's flags
     assert refused(alternate=2, **judged) == set(off_only)
     monkeypatch.setattr(train, "unread_flags", lambda args: [])      # so that parse_args takes them all
     # the Executor's round, then Alg. 2's Demonstrator round (_one_step runs it when alternate is set); the unread
     # flags all at once (one run, not one each: their effects, were there any, would not cancel to the last bit)
-    for alternate, unread, read in ((0, set(changed) - {"distill_motion_weight"}, "distill_motion_weight"),
-                                    (2, off_only, "trainer")):
+    for alternate, ignored, read in ((0, unread, "distill_motion_weight"), (2, off_only, "trainer")):
         rec0, grads0, gen0, _ = _one_step(tiny_ckpt, tmp_path, executor_update="off", alternate=alternate)
-        for names in (unread, [read]):
+        for names in (ignored, [read]):
             rec, grads, gen, _ = _one_step(tiny_ckpt, tmp_path, executor_update="off", alternate=alternate,
                                            **{name: changed[name] for name in names})
             same = (rec["loss"] == rec0["loss"] and torch.equal(gen, gen0)
