@@ -25,6 +25,8 @@ which a bystander moves the goal to the agent.
   python bench.py --condition oracle --n 200 --seed 0            # the shipped base, error-free descriptions
   python bench.py --checkpoint runs/x.pt --condition task --json  # last line: one JSON object
   python bench.py --condition vlm --guidance 3    # classifier-free guidance against the empty caption, w = 3
+  python bench.py --crowded --condition vlm       # the crowded bench: 200 pairs on scenes of 5 sprites, where
+                                                  # every scene a model trained on holds 2-4 (a test of transfer)
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
@@ -293,13 +295,15 @@ GALLERY_MAX = 12   # --gallery draws at most this many pairs: a picture, not a b
 
 
 def gallery(base, executor=None, condition: str = "task", n: int = 6, seed: int = 0,
-            error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, path: str | None = None) -> list[dict]:
+            error_rate: float = DEFAULT_ERROR_RATE, steps: int = 10, path: str | None = None,
+            crowded: bool = False) -> list[dict]:
     """What a task looks like and what each model does with it: the first n bench pairs (not chosen), each shown
     as the simulator executing its error-free D, the Demonstrator (the base given the toy VLM's D), the base given
     `condition` (T by default), and the Executor given the same if one is given. A generated video is the one
     `evaluate` judges for that pair (the same seeded noise). Returns one {"label", "videos" (n, F, H, W, 3),
-    "judgments"} per row, each video judged by the toy judges against T; with `path` also draws them."""
-    pairs = world.bench_pairs(error_rate)[:n]
+    "judgments"} per row, each video judged by the toy judges against T; with `path` also draws them. `crowded`:
+    the crowded bench's pairs (world.crowded_pairs) instead of the bench's."""
+    pairs = (world.crowded_pairs if crowded else world.bench_pairs)(error_rate)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     rows = [{"label": "simulator: the error-free D",
              "videos": np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in pairs])}]
@@ -313,11 +317,11 @@ def gallery(base, executor=None, condition: str = "task", n: int = 6, seed: int 
     for r in rows:
         r["judgments"] = [reward.judge_all(v, p.task.text) for v, p in zip(r["videos"], pairs)]
     if path:
-        _draw_gallery(pairs, rows, path, seed)
+        _draw_gallery(pairs, rows, path, seed, "crowded bench" if crowded else "bench")
     return rows
 
 
-def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
+def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int, bench: str = "bench") -> None:
     """One block per pair, headed by T and the toy VLM's D (and what is wrong with D, if it is); in it one strip
     of frames per row of `gallery`, its label on the left and the judges' verdicts on the right."""
     def verdict(j):
@@ -350,9 +354,9 @@ def _draw_gallery(pairs: list, rows: list[dict], path: str, seed: int) -> None:
             ax.text(-3, y, r["label"], ha="right", va="center", fontsize=8)
             ax.text(w + 3, y, verdict(r["judgments"][i]), ha="left", va="center", fontsize=8)
         wrong = f"  (wrong: {p.error})" if p.error else ""
-        ax.set_title(f"bench pair {i}   T = {p.task.text}\nthe toy VLM's D: {p.d_vlm}{wrong}", fontsize=8.5,
+        ax.set_title(f"{bench} pair {i}   T = {p.task.text}\nthe toy VLM's D: {p.d_vlm}{wrong}", fontsize=8.5,
                      loc="left")
-    fig.suptitle(f"The first {len(pairs)} bench pairs (not chosen): frame 0 given, frames 1-"
+    fig.suptitle(f"The first {len(pairs)} {bench} pairs (not chosen): frame 0 given, frames 1-"
                  f"{rows[0]['videos'].shape[1] - 1} generated (noise seed {seed}); the verdicts are the toy judges', "
                  f"against T", fontsize=9, y=1 - 0.12 / fh)
     models.make_parent(path)
@@ -756,7 +760,7 @@ DIAGNOSTIC_READS = {
     "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json"),
     "pointing": ("checkpoint", "condition", "n", "error_rate", "relate_probe", "json"),
     "rank_rdistill": ("checkpoint", "condition", "n", "group", "seed", "error_rate", "steps", "json"),
-    "gallery": ("checkpoint", "executor", "condition", "n", "seed", "error_rate", "steps", "json"),
+    "gallery": ("checkpoint", "executor", "condition", "n", "seed", "error_rate", "steps", "json", "crowded"),
 }
 
 
@@ -778,6 +782,9 @@ def main(argv=None):
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
                    "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
                    "toy bench")
+    p.add_argument("--crowded", action="store_true", help="the crowded bench instead (world.crowded_pairs): 200 "
+                   "pairs of the same task kinds on scenes of 5 sprites, where every scene the models saw holds 2-4 "
+                   "(the toy's test of transfer, Sec. 4.7, App. A.5)")
     p.add_argument("--offload_text", action="store_true", help="a real model: keep its text encoder in CPU memory "
                    "between encodings (less GPU memory, the same videos)")
     p.add_argument("--offload_judge", action="store_true", help="a VLM judge: keep its weights in CPU memory "
@@ -860,6 +867,8 @@ def main(argv=None):
         p.error("--lora loads a real model's Executor; a toy Executor checkpoint has its LoRA merged: --checkpoint")
     if a.model != "toy" and a.checkpoint:
         p.error("--checkpoint is a toy model file; a real model is --model_path (+ --lora for its Executor)")
+    if a.crowded and a.dataset:
+        p.error("--crowded is a toy bench and --dataset another: give one")
     if a.dataset and a.condition not in ("task", "vlm", "empty"):
         p.error(f"--condition {a.condition} needs the toy bench's scenes; a --dataset bench has task, vlm, empty")
     if not 0 <= a.error_rate <= 1:
@@ -928,7 +937,7 @@ def main(argv=None):
         sys.exit(2)
     model.eval()
     if a.gallery:
-        rows = gallery(model, executor, a.condition, a.n, a.seed, a.error_rate, a.steps, a.gallery)
+        rows = gallery(model, executor, a.condition, a.n, a.seed, a.error_rate, a.steps, a.gallery, a.crowded)
         for r in rows:
             print(f"{r['label']}: " + ", ".join(f"{k} {sum(bool(j[k].yes) for j in r['judgments'])}/{a.n}"
                                                   for k in KEYS))
@@ -937,18 +946,20 @@ def main(argv=None):
             print(json.dumps({"pairs": a.n, "seed": a.seed, "rows": [
                 {"label": r["label"], **{k: [j[k].yes for j in r["judgments"]] for k in KEYS}} for r in rows]}))
         return
+    if a.crowded:
+        pairs = world.crowded_pairs(a.error_rate)
     if a.real:
         _run_one(a, model, judge, pairs)
         return
     probe = contextlib.nullcontext()
     if a.relate_probe:
         try:
-            probe = relate_probe(model, world.bench_pairs(a.error_rate)[:a.n], a.relate_probe)
+            probe = relate_probe(model, (pairs or world.bench_pairs(a.error_rate))[:a.n], a.relate_probe)
         except ValueError as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
     with probe:
-        _run_one(a, model)
+        _run_one(a, model, pairs=pairs)
 
 
 def _run_one(a, model, judge=None, pairs=None) -> None:
@@ -1011,10 +1022,12 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
         res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
-        title = f"model={name} judge={a.judge} bench={a.dataset or 'toy'} "
+        title = f"model={name} judge={a.judge} bench={a.dataset or ('crowded' if a.crowded else 'toy')} "
     else:
-        res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
-        title = f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
+        res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe,
+                   bench="crowded" if a.crowded else "toy")
+        title = (f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
+                 + ("bench=crowded " if a.crowded else ""))
     print(format_table(res, title))
     if a.png:
         save_strip(videos, a.png)

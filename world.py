@@ -3,7 +3,7 @@
 This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) and for the VLM g of Alg. 1 line 4:
 
 * A scene is 2-4 sprites (distinct colours, each a 3x3 shape) on a plain dark background, seen through a
-  16x16 camera. A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
+  16x16 camera; 5 on the crowded bench (crowded_pairs), a test of transfer to scenes no model was trained on. A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
 * A motion plan moves one mover -- a sprite, or the camera -- by (vx, vy) in {-1, 0, 1}^2 pixels per frame for
   k in 1..5 frames, then stops. `simulate` + `render` turn (scene, plan) into a uint8 video.
 * A detailed description D spells out the plan ("red square moves left 2 up 1 for 3 frames then stops"); the base
@@ -445,9 +445,14 @@ def propose_tasks(frame0: np.ndarray, rng: np.random.Generator, n: int = 1, erro
 # scenes and the WorldTasks-toy dataset
 # ----------------------------------------------------------------------------------------------------------------
 
-def random_scene(rng: np.random.Generator) -> Scene:
-    """2-4 sprites with distinct colours, fully in view, at least one pixel apart."""
-    n = int(rng.integers(2, 5))
+SPRITES = (2, 4)           # the fewest and most sprites of a scene: pretraining, training and the bench
+CROWDED_SPRITES = (5, 5)   # the crowded bench's scenes (crowded_pairs): more sprites than any scene the models saw
+
+
+def random_scene(rng: np.random.Generator, sprites: tuple[int, int] = SPRITES) -> Scene:
+    """sprites[0] to sprites[1] sprites (2-4 unless told) with distinct colours, fully in view, at least one pixel
+    apart."""
+    n = int(rng.integers(sprites[0], sprites[1] + 1))
     colours = rng.choice(list(COLOURS), n, replace=False)
     while True:
         xy = rng.integers(1, W - 1, size=(n, 2))
@@ -465,14 +470,16 @@ def scene_key(scene: Scene) -> tuple:
 BENCH_SEED = 2606_12072
 
 
-def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None) -> list[Pair]:
-    """n task pairs, each on its own random scene (scenes in `exclude` are skipped). Pair i's description is wrong
-    with probability `error_rate`, drawn from its own generator (seed, i), so the scenes and tasks do not depend on
-    the error rate and a description wrong at one rate stays wrong at every higher one. The error-free pairs are
-    made once per (n, seed, exclude) and each error rate is laid over them: a run reads the bench at its error
-    rate and the bench's scenes (error rate 0) without making the 200 scenes twice."""
+def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None,
+               sprites: tuple[int, int] = SPRITES) -> list[Pair]:
+    """n task pairs, each on its own random scene of `sprites` sprites (random_scene; scenes in `exclude` are
+    skipped). Pair i's description is wrong with probability `error_rate`, drawn from its own generator (seed, i), so
+    the scenes and tasks do not depend on the error rate and a description wrong at one rate stays wrong at every
+    higher one. The error-free pairs are made once per (n, seed, exclude, sprites) and each error rate is laid over
+    them: a run reads the bench at its error rate and the bench's scenes (error rate 0) without making the 200
+    scenes twice."""
     out = []
-    for i, p in enumerate(_error_free_pairs(n, seed, frozenset(exclude) if exclude else None)):
+    for i, p in enumerate(_error_free_pairs(n, seed, frozenset(exclude) if exclude else None, tuple(sprites))):
         plan_vlm, err = vlm_mistake(p.scene, p.plan_oracle, error_rate, np.random.default_rng([seed, i]))
         if err:
             p = replace(p, d_vlm=describe(p.scene, plan_vlm), plan_vlm=plan_vlm, error=err)
@@ -481,11 +488,11 @@ def make_pairs(n: int, seed: int, error_rate: float, exclude: set | None = None)
 
 
 @functools.lru_cache(maxsize=8)
-def _error_free_pairs(n: int, seed: int, exclude: frozenset | None) -> tuple:
+def _error_free_pairs(n: int, seed: int, exclude: frozenset | None, sprites: tuple[int, int]) -> tuple:
     rng = np.random.default_rng(seed)
     pairs = []
     while len(pairs) < n:
-        scene = random_scene(rng)
+        scene = random_scene(rng, sprites)
         if exclude and scene_key(scene) in exclude:
             continue
         frame0 = render(scene, simulate(scene, Plan(None)))[0]
@@ -510,6 +517,17 @@ def _bench_pairs(error_rate: float, n: int) -> tuple:
 @functools.lru_cache(maxsize=1)
 def bench_scene_keys() -> frozenset:
     return frozenset(scene_key(p.scene) for p in bench_pairs(0.0))
+
+
+CROWDED_SEED = 2606_12073
+
+
+def crowded_pairs(error_rate: float, n: int = 200) -> list[Pair]:
+    """An out-of-distribution bench (bench.py --crowded), the toy's counterpart of the paper's transfer tests
+    (Sec. 4.7's DreamGen, App. A.5's VBVR): 200 pairs made as the bench's are, from their own seed, on scenes of
+    CROWDED_SPRITES sprites, where every scene the models pretrain and train on, and the bench's, holds 2-4. The
+    tasks and their words are the bench's kinds; only the scenes are new, and more crowded."""
+    return make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES)
 
 
 def train_pairs(n: int, seed: int, error_rate: float) -> list[Pair]:

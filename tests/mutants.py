@@ -289,6 +289,12 @@ MUTANTS = {
          'the training task reward of an unjudged video'),
     ]),
     "world.py": (JUDGES, [
+        ("    n = int(rng.integers(sprites[0], sprites[1] + 1))", "    n = int(rng.integers(2, 5))",
+         "the crowded bench's scenes drawn with 2-4 sprites"),
+        ("    return make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES)",
+         "    return make_pairs(n, CROWDED_SEED, error_rate)", "the crowded bench on the bench's kind of scene"),
+        ("        scene = random_scene(rng, sprites)", "        scene = random_scene(rng)",
+         "make_pairs' sprites not reaching its scenes"),
         ("        return 4.0 - np.abs(a - np.asarray(target_xy, float)).max(-1)",
          "        return 4.0 - np.abs(a - np.asarray(target_xy, float)).sum(-1)", "move_to's Chebyshev distance"),
         ("        return pos - steps[:, None, :]", "        return pos + steps[:, None, :]",
@@ -402,6 +408,11 @@ MUTANTS = {
          '    mixed = [g for g in groups if None not in task[g]]', 'rho_task over groups with one outcome'),
     ]),
     "bench.py (evaluate)": (["tests/test_scripts.py"], [
+        ("        pairs = world.crowded_pairs(a.error_rate)", "        pairs = world.bench_pairs(a.error_rate)",
+         "--crowded evaluating the bench's pairs"),
+        ("        _run_one(a, model, pairs=pairs)", "        _run_one(a, model)", "--crowded not reaching the evaluation"),
+        ("(world.crowded_pairs if crowded else world.bench_pairs)", "(world.bench_pairs)",
+         "--gallery --crowded drawing the bench's pairs"),
         ('    field = {"task": lambda p: p.task.text, "vlm": lambda p: p.d_vlm, "oracle": lambda p: p.d_oracle,',
          '    field = {"task": lambda p: p.task.text, "vlm": lambda p: p.d_vlm, "oracle": lambda p: p.d_vlm,',
          "the error-free D as the toy VLM's"),
@@ -880,6 +891,8 @@ MUTANTS = {
          "--error_rate accepted with a --dataset bench, whose D is its file's"),
         ('    if a.guidance != 1 and a.condition == "empty":', '    if False:',
          "--guidance accepted with --condition empty, where it changes nothing"),
+        ('"steps", "json", "crowded"),', '"steps", "json"),', "--gallery's --crowded refused"),
+        ("    if a.crowded and a.dataset:", "    if False:", "--crowded with a --dataset bench accepted"),
     ]),
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [
         f"tests/test_scripts.py::test_{name}" for name in ("bad_input_gives_one_clear_error",

@@ -146,6 +146,8 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--lora", bad], "--lora loads a real model's Executor"),
                       (["--model", "ltx2-tiny", "--checkpoint", bad], "--checkpoint is a toy model file"),
                       (["--dataset", tmp_path / "d.jsonl", "--condition", "oracle"], "needs the toy bench's scenes"),
+                      (["--crowded", "--dataset", tmp_path / "d.jsonl"], "--crowded is a toy bench and --dataset"),
+                      (["--crowded", "--pointing"], "--crowded is not read by --pointing"),
                       (["--error_rate", "1.5"], "--error_rate must lie in [0, 1]"),
                       (["--steps", "0"], "--steps must be >= 1"), (["--guidance", "-1"], "--guidance must be a finite"),
                       (["--guidance", "nan"], "--guidance must be a finite number >= 0"),
@@ -235,6 +237,33 @@ def test_gallery_draws_the_videos_the_bench_judges(tiny_ckpt, tmp_path):
     out = json.loads(r.stdout.splitlines()[-1])
     assert out["rows"][2] == {"label": "base given T", **{k: [j[k].yes for j in no_executor[2]["judgments"][:2]]
                                                           for k in bench.KEYS}}
+
+
+def test_crowded_evaluates_and_draws_the_crowded_benchs_pairs(tiny_ckpt, tmp_path):
+    """bench.py --crowded judges and draws world.crowded_pairs (5 sprites a scene), not the bench's pairs."""
+    import numpy as np
+    from PIL import Image
+    import bench
+    import models
+    import world
+    model, _ = models.load_checkpoint(tiny_ckpt)
+    crowded = world.crowded_pairs(bench.DEFAULT_ERROR_RATE)
+    res, videos, _ = bench.evaluate(model, "task", 3, seed=1, steps=2, pairs=crowded)
+    assert all(len(world.read_sprites(v[0])) == 5 for v in videos)
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--crowded", "--n", "3", "--steps", "2", "--seed", "1", "--json",
+            "--png", str(tmp_path / "c.png"))
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["bench"] == "crowded" and "bench=crowded" in r.stdout
+    assert {k: out[k] for k in ("successes", "kinds", "still")} == {k: res[k] for k in ("successes", "kinds", "still")}
+    bench.save_strip(videos, str(tmp_path / "want.png"))
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "c.png")), np.asarray(Image.open(tmp_path / "want.png")))
+    bench.save_strip(bench.evaluate(model, "task", 3, seed=1, steps=2)[1], str(tmp_path / "toy.png"))
+    assert not np.array_equal(np.asarray(Image.open(tmp_path / "c.png")), np.asarray(Image.open(tmp_path / "toy.png")))
+    rows = bench.gallery(model, n=2, seed=1, steps=2, crowded=True)
+    assert np.array_equal(rows[0]["videos"], [world.render(p.scene, world.simulate(p.scene, p.plan_oracle))
+                                              for p in crowded[:2]])
+    assert np.array_equal(rows[2]["videos"], videos[:2])      # the base given T: the videos evaluate judged
 
 
 def test_compare_runs_on_fake_runs(tmp_path):
@@ -525,7 +554,7 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
              "error_rate": ["0.1"], "steps": ["3"], "guidance": ["2"], "png": [tmp_path / "p.png"],
              "gallery": [tmp_path / "g.png"],
              "executor": ["e.pt"], "json": [], "compare": ["A=r"], "handoff": ["task,vlm"], "rank_rdistill": [],
-             "group": ["4"], "pointing": [], "relate_probe": ["forced"]}
+             "group": ["4"], "pointing": [], "relate_probe": ["forced"], "crowded": []}
     own = [f"--{mode}", *value[mode]] if mode else []
 
     def called(argv):

@@ -35,6 +35,25 @@ def test_bench_split_is_fixed_balanced_and_disjoint_from_training(bench):
     assert videos.shape == (64, world.F, world.H, world.W, 3)
 
 
+def test_the_crowded_bench_holds_five_sprites_a_scene_and_the_benchs_tasks(bench):
+    """world.crowded_pairs, bench.py --crowded: 200 fixed pairs on scenes of 5 sprites (every scene of the bench,
+    of training and of pretraining holds 2-4), with the bench's task kinds and words, each solved by the simulator
+    executing its error-free D as the judges see it; the toy VLM errs on them as on the bench."""
+    crowded = world.crowded_pairs(0.3)
+    assert len(crowded) == 200 and {len(p.scene.sprites) for p in crowded} == {5}
+    assert {len(p.scene.sprites) for p in bench} == {2, 3, 4}
+    rng = np.random.default_rng(0)
+    assert {len(world.random_scene(rng).sprites) for _ in range(200)} == {2, 3, 4}
+    assert [p.task.text for p in world.crowded_pairs(0.0)] == [p.task.text for p in crowded]
+    assert {p.task.kind for p in crowded} == {p.task.kind for p in bench}
+    assert 0.2 < np.mean([bool(p.error) for p in crowded]) < 0.4
+    for p in crowded[:40]:
+        assert len(world.read_sprites(p.frame0)) == 5
+        assert world.parse_task(p.task.text) == p.task
+        judged = reward.judge_all(_video(p.scene, p.plan_oracle), p.task.text)
+        assert all(judged[k].yes for k in ("task", "agent", "consistency")), p.task.text
+
+
 def test_error_rates_are_laid_over_one_set_of_pairs():
     """make_pairs makes the error-free pairs once and lays each error rate over them. That gives what drawing each
     pair's error inside propose_tasks gives, and a description wrong at one rate stays wrong at every higher one."""
