@@ -866,7 +866,7 @@ MUTANTS = {
             "error_rate_is_read_with_the_prompts_made_from_the_toy_vlms_d_only",
             "guidance_changes_nothing_given_the_empty_caption_and_is_refused_there",
             "handoff_switches_the_prompt_at_the_grid_time", "rank_rdistill_ranks_within_groups_the_rollouts_it_draws",
-            "gallery_draws_the_videos_the_bench_judges")], [
+            "gallery_draws_the_videos_the_bench_judges", "crowded_evaluates_and_draws_the_crowded_benchs_pairs")], [
         ('    "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json"),',
          '    "handoff": ("checkpoint", "n", "seed", "error_rate", "steps", "png", "json", "batch"),',
          "--handoff's --batch accepted (it ignores it)"),
@@ -892,6 +892,7 @@ MUTANTS = {
         ('    if a.guidance != 1 and a.condition == "empty":', '    if False:',
          "--guidance accepted with --condition empty, where it changes nothing"),
         ('"steps", "json", "crowded"),', '"steps", "json"),', "--gallery's --crowded refused"),
+        ("a.steps, a.gallery, a.crowded)", "a.steps, a.gallery)", "--gallery --crowded drawing the bench"),
         ("    if a.crowded and a.dataset:", "    if False:", "--crowded with a --dataset bench accepted"),
     ]),
     "bench.py (bad input)": (["tests/test_real_backends.py::test_the_loaders_checkpoint_and_offload_when_asked"] + [

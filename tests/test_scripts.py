@@ -260,10 +260,14 @@ def test_crowded_evaluates_and_draws_the_crowded_benchs_pairs(tiny_ckpt, tmp_pat
     assert np.array_equal(np.asarray(Image.open(tmp_path / "c.png")), np.asarray(Image.open(tmp_path / "want.png")))
     bench.save_strip(bench.evaluate(model, "task", 3, seed=1, steps=2)[1], str(tmp_path / "toy.png"))
     assert not np.array_equal(np.asarray(Image.open(tmp_path / "c.png")), np.asarray(Image.open(tmp_path / "toy.png")))
-    rows = bench.gallery(model, n=2, seed=1, steps=2, crowded=True)
+    rows = bench.gallery(model, n=2, seed=1, steps=2, path=str(tmp_path / "want_g.png"), crowded=True)
     assert np.array_equal(rows[0]["videos"], [world.render(p.scene, world.simulate(p.scene, p.plan_oracle))
                                               for p in crowded[:2]])
     assert np.array_equal(rows[2]["videos"], videos[:2])      # the base given T: the videos evaluate judged
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--gallery", str(tmp_path / "g.png"), "--crowded", "--n", "2",
+            "--steps", "2", "--seed", "1", "--json")
+    assert r.returncode == 0, r.stderr
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "g.png")), np.asarray(Image.open(tmp_path / "want_g.png")))
 
 
 def test_compare_runs_on_fake_runs(tmp_path):
