@@ -3,7 +3,8 @@
 This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) and for the VLM g of Alg. 1 line 4:
 
 * A scene is 2-4 sprites (distinct colours, each a 3x3 shape) on a plain dark background, seen through a
-  16x16 camera; 5 on the crowded bench (crowded_pairs), a test of transfer to scenes no model was trained on. A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
+  16x16 camera; 5 on the crowded bench (crowded_pairs), a test of transfer to scenes no model was trained on.
+  A video is F = 6 frames: frame 0 is the observation I, frames 1..5 are generated.
 * A motion plan moves one mover -- a sprite, or the camera -- by (vx, vy) in {-1, 0, 1}^2 pixels per frame for
   k in 1..5 frames, then stops. `simulate` + `render` turn (scene, plan) into a uint8 video.
 * A detailed description D spells out the plan ("red square moves left 2 up 1 for 3 frames then stops"); the base
