@@ -1019,13 +1019,13 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
         return
     res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
                               a.guidance)
+    res["bench"] = a.dataset or ("crowded" if a.crowded else "toy")
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
         res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
-        title = f"model={name} judge={a.judge} bench={a.dataset or ('crowded' if a.crowded else 'toy')} "
+        title = f"model={name} judge={a.judge} bench={res['bench']} "
     else:
-        res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe,
-                   bench="crowded" if a.crowded else "toy")
+        res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
         title = (f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
                  + ("bench=crowded " if a.crowded else ""))
     print(format_table(res, title))
