@@ -136,7 +136,8 @@ class Args:
     executor_prompt: str = "task"
     """the Executor's text: task (T, the paper's c_E) | instruction (the toy VLM's D rewritten in the task's
     "[agent]: instruction" form, world.instruction_form: D's information in a form the base never saw -- a positive
-    control for the objectives, docs/results.md; distill variants off, on, dmd, and the rl stage; the judges still judge T) |
+    control for the objectives, docs/results.md; distill variants off, on, dmd and paired (its videos labelled with
+    it), and the rl stage; the judges still judge T) |
     oracle_instruction (the error-free D in that form: docs/results.md's second control, where c_E carries the right
     motion and the Demonstrator's D is still wrong at the toy VLM's error rate) | oracle_direction (the same without
     its duration, world.direction_form: "[red square]: move left 2 up 1" -- the partial control, docs/results.md: c_E
@@ -169,6 +170,10 @@ class Args:
     """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
     train_pairs: int = 512
     """(image, T, D) training pairs drawn from the toy VLM, on scenes disjoint from the bench"""
+    train_crowded: bool = False
+    """train on scenes of 5 sprites (world.CROWDED_SPRITES) disjoint from the crowded bench's (bench.py --crowded),
+    not on the bench's 2-4: the toy's Table 2, where SFT trains on the target domain's data and WMSD does not
+    (docs/results.md); the training pairs, and the sft variant's plain videos. Evaluations stay on the bench"""
     eval_every: int = 0
     """steps between bench evaluations; the last step is always evaluated (in the rl stage by the final evaluation,
     of the saved Executor). 0: the stage's default, 10 in distill (Fig. 4 left's curve) and 25 in rl, where at 10
@@ -315,9 +320,9 @@ READ_BY = {
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
     **dict.fromkeys(("variant", "batch"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
-                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "eval_every",
-                     "eval_n", "eval_cache", "state_window", "distill_motion_weight", "model", "eval_dataset", "judge",
-                     "judge_path", "micro_batch"), ("distill", "rl")),
+                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "train_crowded",
+                     "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight", "model",
+                     "eval_dataset", "judge", "judge_path", "micro_batch"), ("distill", "rl")),
     **dict.fromkeys(("toy_gpu", "model_path", "dataset", "offload_judge", "trainer", "group_size", "tasks_per_step",
                      "grad_checkpoint", "offload_text", "sampler", "noise_level", "lambda_task", "task_reward",
                      "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
@@ -510,11 +515,13 @@ def parse_args(argv=None) -> Args:
     if args.executor_prompt not in EXECUTOR_PROMPTS:
         p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
-                                           and set(args.variant.split(",")) <= {"off", "on", "dmd"})
+                                           and set(args.variant.split(",")) <= {"off", "on", "dmd", "paired"})
     if args.executor_prompt != "task" and (not control_stage or args.model != "toy" or args.dataset):
         p.error(f"--executor_prompt {args.executor_prompt} is a toy control for the objectives: --stage rl, or "
-                "--stage distill with --variant off, on or dmd (the SFT baselines train on T); toy model and toy "
-                "VLM pairs only")
+                "--stage distill with --variant off, on, dmd or paired (sft trains on the tasks it derives); toy "
+                "model and toy VLM pairs only")
+    if args.train_crowded and (args.model != "toy" or args.dataset):
+        p.error("--train_crowded draws the toy VLM's pairs on crowded toy scenes: toy model, no --dataset")
     if args.micro_batch < 0:
         p.error(f"--micro_batch must be >= 0 (0: no micro-batches), got {args.micro_batch}")
     if args.resume and args.stage != "rl":
@@ -823,9 +830,10 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
         frame0, tasks, descs = _batch(pairs, idx, args.executor_prompt)
         extra = {}
         if variant == "sft":    # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
-            videos, labels = world.sft_batch(rng, args.batch, world.bench_scene_keys())
+            videos, labels = world.sft_batch(rng, args.batch, args.train_crowded)
             loss = video_loss(model, videos, labels, args)
         elif variant == "paired":  # the costly supervision WMSD does without: correct executions labelled with T
+            # (or with a control's prompt, --executor_prompt)
             ps = [pairs[i] for i in idx]
             videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in ps])
             loss = video_loss(model, videos, tasks, args)
@@ -868,8 +876,9 @@ def distill_stage(args: Args) -> dict:
     seed_everything(args.seed, args.threads)
     os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()
-    pairs = world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
-    print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}) in {time.time() - t0:.0f} s")
+    pairs = toy_pairs(args)
+    print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}"
+          f"{', crowded scenes' if args.train_crowded else ''}) in {time.time() - t0:.0f} s")
     base, _ = models.load_checkpoint(args.init or None)
     demo = base_evaluation(base, args, demonstrator=True)
     at_0 = base_evaluation(base, args)
@@ -1376,8 +1385,15 @@ def load_base(args: Args):
 def load_pairs(args: Args, model) -> list:
     """Alg. 1 lines 3-4's (image, T, D): the toy VLM's pairs, or a WorldTasks JSONL file (--dataset)."""
     if not args.dataset:
-        return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate)
+        return toy_pairs(args)
     return dataset_pairs(args.dataset, model, args.tasks_per_step, "--tasks_per_step")
+
+
+def toy_pairs(args: Args) -> list:
+    """The toy VLM's training pairs: --train_pairs of them, on scenes disjoint from the bench (--train_crowded: on
+    5-sprite scenes disjoint from the crowded bench)."""
+    return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate,
+                             crowded=args.train_crowded)
 
 
 def dataset_pairs(path: str, model, need: int, flag: str) -> list:
@@ -1494,7 +1510,8 @@ def rl_stage(args: Args) -> dict:
         evals = [{"step": 0, **{k: base_T[k] for k in EVAL_KEYS}}]
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
-        say(f"{len(pairs)} training pairs; {_world()} process(es); base given {given}: task "
+        say(f"{len(pairs)} training pairs{' on crowded scenes' if args.train_crowded else ''}; {_world()} "
+            f"process(es); base given {given}: task "
             f"{fixed[base_row]['task']:.3f} consistency {fixed[base_row]['consistency']:.3f}; Demonstrator (toy "
             f"VLM's D): task "
             f"{demo['task']:.3f} consistency {demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)

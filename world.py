@@ -515,9 +515,10 @@ def _bench_pairs(error_rate: float, n: int) -> tuple:
     return tuple(make_pairs(n, BENCH_SEED, error_rate))
 
 
-@functools.lru_cache(maxsize=1)
-def bench_scene_keys() -> frozenset:
-    return frozenset(scene_key(p.scene) for p in bench_pairs(0.0))
+@functools.lru_cache(maxsize=2)
+def bench_scene_keys(crowded: bool = False) -> frozenset:
+    """The scenes of the bench (or, crowded=True, of the crowded bench): what training scenes must not be."""
+    return frozenset(scene_key(p.scene) for p in (crowded_pairs if crowded else bench_pairs)(0.0))
 
 
 CROWDED_SEED = 2606_12073
@@ -531,8 +532,12 @@ def crowded_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     return make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES)
 
 
-def train_pairs(n: int, seed: int, error_rate: float) -> list[Pair]:
-    """Training pairs on scenes disjoint from the bench split."""
+def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> list[Pair]:
+    """Training pairs on scenes disjoint from the bench split; crowded=True (train.py --train_crowded): on scenes of
+    CROWDED_SPRITES sprites disjoint from the crowded bench's, the toy's counterpart of Table 2's SFT on the target
+    domain's own data."""
+    if crowded:
+        return make_pairs(n, seed, error_rate, exclude=bench_scene_keys(True), sprites=CROWDED_SPRITES)
     return make_pairs(n, seed, error_rate, exclude=bench_scene_keys())
 
 
@@ -630,12 +635,14 @@ def sft_task(scene: Scene, plan: Plan, rng: np.random.Generator) -> str:
     return f"[{agent}]: move {'down' if plan.vy > 0 else 'up'}"
 
 
-def sft_batch(rng: np.random.Generator, batch: int, exclude: set | None = None):
-    """Plain world videos (random motions, as in pretraining) with sft_task's labels: (videos, tasks)."""
+def sft_batch(rng: np.random.Generator, batch: int, crowded: bool = False):
+    """Plain world videos (random motions, as in pretraining) with sft_task's labels: (videos, tasks), on scenes
+    never in the bench (crowded=True: of CROWDED_SPRITES sprites, never in the crowded bench)."""
     videos, tasks = [], []
+    exclude = bench_scene_keys(crowded)
     while len(videos) < batch:
-        scene = random_scene(rng)
-        if exclude and scene_key(scene) in exclude:
+        scene = random_scene(rng, CROWDED_SPRITES if crowded else SPRITES)
+        if scene_key(scene) in exclude:
             continue
         plan = random_plan(scene, rng)
         task = sft_task(scene, plan, rng)

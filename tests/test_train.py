@@ -366,6 +366,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--stage", "pretrain", "--executor_prompt", "instruction"], "toy control"),
                       (["--stage", "distill", "--variant", "on,sft", "--executor_prompt", "instruction"],
                        "toy control"),
+                      (["--train_crowded", "--dataset", "tasks.jsonl"], "--train_crowded draws the toy VLM's pairs"),
+                      (["--train_crowded", "--model", "ltx2-tiny"], "crowded toy scenes: toy model, no --dataset"),
                       (["--state_window", "0.7,0.3"], "--state_window: expected 0 <= LO < HI <= 1"),
                       (["--state_window", "mid"], "--state_window: expected two numbers"),
                       (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
@@ -834,6 +836,42 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
         if variant == "sft":
             (_, videos, captions, _), _, _ = fits[-1]
             assert videos is sft[-1][2][0] and captions is sft[-1][2][1]
+    # paired under a control's prompt labels the correct executions with it; sft under --train_crowded fits plain
+    # videos of 5-sprite scenes
+    with open(tmp_path / "log.jsonl", "w") as logf:
+        train.distill_variant(_args(tiny_ckpt, tmp_path, stage="distill", steps=1, batch=2, variant="paired",
+                                    executor_prompt="oracle_instruction"), "paired", pairs, logf, res)
+        (_, _, captions, _), _, _ = fits[-1]
+        assert set(captions) <= set(bench.prompts_for(pairs, "oracle_instruction")) and not set(captions) & {
+            p.task.text for p in pairs}
+        train.distill_variant(dataclasses.replace(args, train_crowded=True), "sft", pairs, logf, res)
+    (_, videos, _, _), _, _ = fits[-1]
+    assert {len(train.world.read_sprites(v[0])) for v in videos} == {5}
+
+
+def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(tiny_ckpt, tmp_path, monkeypatch):
+    """--train_crowded (the toy's Table 2): the rl stage's pairs (load_pairs) and the pairs the distill stage hands
+    each variant come from 5-sprite scenes, none of them the crowded bench's; without it, from the bench's 2-4."""
+    sprites = lambda pairs: {len(p.scene.sprites) for p in pairs}  # noqa: E731
+    rl_args = _args(tiny_ckpt, tmp_path)
+    assert sprites(train.load_pairs(rl_args, None)) <= {2, 3, 4}
+    crowded = train.load_pairs(dataclasses.replace(rl_args, train_crowded=True), None)
+    assert sprites(crowded) == {5} and len(crowded) == rl_args.train_pairs
+    assert not train.world.bench_scene_keys(True) & {train.world.scene_key(p.scene) for p in crowded}
+
+    class Handed(Exception):
+        pass
+
+    def handed(args, variant, pairs, logf, at_0):
+        raise Handed(pairs)
+
+    monkeypatch.setattr(train, "distill_variant", handed)
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: {k: 0.0 for k in train.EVAL_KEYS})
+    args = _args(tiny_ckpt, tmp_path, stage="distill", variant="paired")
+    for flag, want in ((False, {2, 3, 4}), (True, {5})):
+        with pytest.raises(Handed) as e:
+            train.distill_stage(dataclasses.replace(args, train_crowded=flag))
+        assert sprites(e.value.args[0]) <= want and len(sprites(e.value.args[0]) & want) > 0
 
 
 def test_a_group_is_group_size_rollouts_of_one_task_from_their_own_noise(tiny_ckpt, tmp_path):

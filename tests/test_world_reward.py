@@ -54,6 +54,30 @@ def test_the_crowded_bench_holds_five_sprites_a_scene_and_the_benchs_tasks(bench
         assert all(judged[k].yes for k in ("task", "agent", "consistency")), p.task.text
 
 
+def test_crowded_training_scenes_hold_five_sprites_and_never_the_crowded_benchs(monkeypatch):
+    """train.py --train_crowded (the toy's Table 2: SFT on the target domain): the training pairs and the sft
+    variant's plain videos come from 5-sprite scenes, none of them the crowded bench's; the default draw stays 2-4
+    sprites, away from the bench."""
+    keys = world.bench_scene_keys(True)
+    assert keys == {world.scene_key(p.scene) for p in world.crowded_pairs(0.0)} and keys != world.bench_scene_keys()
+    pairs = world.train_pairs(60, seed=1, error_rate=0.3, crowded=True)
+    assert {len(p.scene.sprites) for p in pairs} == {5}
+    assert not keys & {world.scene_key(p.scene) for p in pairs}
+    # drawn from the crowded bench's own seed, they would be its scenes but for the exclusion
+    assert not keys & {world.scene_key(p.scene) for p in world.train_pairs(20, world.CROWDED_SEED, 0.0, crowded=True)}
+    assert {len(p.scene.sprites) for p in world.train_pairs(60, seed=1, error_rate=0.3)} == {2, 3, 4}
+    videos, _ = world.sft_batch(np.random.default_rng(0), 40, crowded=True)
+    assert {len(world.read_sprites(v[0])) for v in videos} == {5}
+    assert {len(world.read_sprites(v[0])) for v in world.sft_batch(np.random.default_rng(0), 40)[0]} <= {2, 3, 4}
+    # a bench's scene that the sft draw comes upon (here the first 20, served first) is skipped
+    for crowded, held_out in ((False, world.bench_pairs(0.0)), (True, world.crowded_pairs(0.0))):
+        served, draw = iter([p.scene for p in held_out[:20]]), world.random_scene
+        monkeypatch.setattr(world, "random_scene", lambda rng, sprites: next(served, None) or draw(rng, sprites))
+        videos, _ = world.sft_batch(np.random.default_rng(0), 10, crowded)
+        assert not {v[0].tobytes() for v in videos} & {p.frame0.tobytes() for p in held_out}
+        monkeypatch.setattr(world, "random_scene", draw)
+
+
 def test_error_rates_are_laid_over_one_set_of_pairs():
     """make_pairs makes the error-free pairs once and lays each error rate over them. That gives what drawing each
     pair's error inside propose_tasks gives, and a description wrong at one rate stays wrong at every higher one."""
@@ -168,7 +192,7 @@ def test_d_says_the_motion_the_simulator_renders_and_a_valid_plan_never_overlaps
 def test_sft_labels_are_short_tasks_the_video_solves_or_trivial_moves():
     """The +SFT baseline's labeller: a derived task must be one the judge says the labelled video solves."""
     rng = np.random.default_rng(0)
-    videos, tasks = world.sft_batch(rng, 120, world.bench_scene_keys())
+    videos, tasks = world.sft_batch(rng, 120)
     trivial = [t for t in tasks if t.split(": ")[1] in ("move left", "move right", "move up", "move down")]
     assert 0.3 < len(trivial) / len(tasks) < 0.9          # many are trivial, as Sec. 4.4 found
     for v, t in zip(videos, tasks):
