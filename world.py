@@ -536,9 +536,8 @@ def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> 
     """Training pairs on scenes disjoint from the bench split; crowded=True (train.py --train_crowded): on scenes of
     CROWDED_SPRITES sprites disjoint from the crowded bench's, the toy's counterpart of Table 2's SFT on the target
     domain's own data."""
-    if crowded:
-        return make_pairs(n, seed, error_rate, exclude=bench_scene_keys(True), sprites=CROWDED_SPRITES)
-    return make_pairs(n, seed, error_rate, exclude=bench_scene_keys())
+    return make_pairs(n, seed, error_rate, exclude=bench_scene_keys(crowded),
+                      sprites=CROWDED_SPRITES if crowded else SPRITES)
 
 
 def random_plan(scene: Scene, rng: np.random.Generator) -> Plan:
