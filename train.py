@@ -173,7 +173,12 @@ class Args:
     train_crowded: bool = False
     """train on scenes of 5 sprites (world.CROWDED_SPRITES) disjoint from the crowded bench's (bench.py --crowded),
     not on the bench's 2-4: the toy's Table 2, where SFT trains on the target domain's data and WMSD does not
-    (docs/results.md); the training pairs, and the sft variant's plain videos. Evaluations stay on the bench"""
+    (docs/results.md); the training pairs, and the sft variant's plain videos. Evaluations stay on the bench unless
+    --eval_crowded"""
+    eval_crowded: bool = False
+    """evaluate on the crowded bench (world.crowded_pairs, bench.py --crowded: 200 pairs on 5-sprite scenes) instead
+    of the bench: every evaluation of the run, the base's and the Demonstrator's included, and the GIF's pairs.
+    Beside --train_crowded, the curve of the toy's Table 2 target"""
     eval_every: int = 0
     """steps between bench evaluations; the last step is always evaluated (in the rl stage by the final evaluation,
     of the saved Executor). 0: the stage's default, 10 in distill (Fig. 4 left's curve) and 25 in rl, where at 10
@@ -321,8 +326,8 @@ READ_BY = {
     **dict.fromkeys(("variant", "batch"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
                      "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "train_crowded",
-                     "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight", "model",
-                     "eval_dataset", "judge", "judge_path", "micro_batch"), ("distill", "rl")),
+                     "eval_crowded", "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight",
+                     "model", "eval_dataset", "judge", "judge_path", "micro_batch"), ("distill", "rl")),
     **dict.fromkeys(("toy_gpu", "model_path", "dataset", "offload_judge", "trainer", "group_size", "tasks_per_step",
                      "grad_checkpoint", "offload_text", "sampler", "noise_level", "lambda_task", "task_reward",
                      "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
@@ -541,6 +546,8 @@ def parse_args(argv=None) -> Args:
                 "-random stand-ins)")
     if args.eval_n > 200 and not args.eval_dataset:
         p.error("--eval_n must be at most 200 (the toy bench's size)")
+    if args.eval_crowded and args.eval_dataset:
+        p.error("--eval_crowded is a toy bench and --eval_dataset another: give one")
     if args.eval_dataset and args.stage != "rl":
         p.error("--eval_dataset is the rl stage's bench: it needs --stage rl")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
@@ -755,6 +762,19 @@ def eval_line(res: dict) -> str:
     return " ".join(f"{k} {res[k]:.3f}" for k in EVAL_KEYS)
 
 
+def eval_pairs(args: Args) -> list:
+    """The bench every evaluation of this run reads: --eval_dataset's rows (BENCH, which rl_stage sets), else the
+    toy bench, or with --eval_crowded the crowded one."""
+    if BENCH is not None:
+        return BENCH
+    return (world.crowded_pairs if args.eval_crowded else world.bench_pairs)(args.error_rate)
+
+
+def bench_title(crowded: bool) -> str:
+    """The toy bench a figure's scores come from, as its title names it."""
+    return "WorldTasks-toy's crowded bench" if crowded else "WorldTasks-toy"
+
+
 def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> dict:
     """Bench scores of the Executor given T (or its --executor_prompt) -- or, with demonstrator=True, of the
     Demonstrator (adapters off) given the toy VLM's D. Same noise seed (0) every time, so curves compare like with
@@ -763,7 +783,7 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE,
-                                        batch=args.micro_batch or 200, pairs=BENCH)
+                                        batch=args.micro_batch or 200, pairs=eval_pairs(args))
     return res
 
 
@@ -778,6 +798,7 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
            **({} if demonstrator or args.executor_prompt == "task" else {"executor_prompt": args.executor_prompt}),
            "eval_n": args.eval_n, "error_rate": args.error_rate, "sample_steps": args.sample_steps,
            "judge": args.judge, "judge_path": args.judge_path,
+           **({"eval_crowded": True} if args.eval_crowded else {}),     # absent: the keys written before the flag
            **({"eval_dataset": bench.file_digest(args.eval_dataset)} if args.eval_dataset else {})}
     name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16] + ".json"
     path = os.path.join(args.eval_cache, name)
@@ -882,11 +903,12 @@ def distill_stage(args: Args) -> dict:
     base, _ = models.load_checkpoint(args.init or None)
     demo = base_evaluation(base, args, demonstrator=True)
     at_0 = base_evaluation(base, args)
-    print(f"Demonstrator (base given the toy VLM's D): task {demo['task']:.3f} agent {demo['agent']:.3f} "
+    print(f"{'On the crowded bench, the ' if args.eval_crowded else ''}Demonstrator (base given the toy VLM's D): "
+          f"task {demo['task']:.3f} agent {demo['agent']:.3f} "
           f"consistency {demo['consistency']:.3f}")
     variants = args.variant.split(",")
     results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
-               "executor_prompt": args.executor_prompt}
+               "executor_prompt": args.executor_prompt, "bench": "crowded" if args.eval_crowded else "toy"}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:
             model, evals = distill_variant(args, v, pairs, logf, at_0)
@@ -913,7 +935,8 @@ def plot_fig4_left(results: dict, path: str) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     given = executor_given(results.get("executor_prompt", "task"))
-    fig.suptitle(f"Self-distillation variants on WorldTasks-toy (paper Fig. 4 left)\nExecutor given {given}")
+    fig.suptitle(f"Self-distillation variants on {bench_title(results.get('bench') == 'crowded')} (paper Fig. 4 "
+                 f"left)\nExecutor given {given}")
     bench.save_figure(plt, fig, path)
 
 
@@ -924,7 +947,7 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     Only the toy's 16-px rows are enlarged (8x); the scale once came from the first frames, which are the toy
     bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured)."""
     from PIL import Image
-    pairs = (world.bench_pairs(args.error_rate) if BENCH is None else BENCH)[:n]
+    pairs = eval_pairs(args)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     batch = args.micro_batch or n
     with models.adapters_disabled(model):
@@ -1511,7 +1534,7 @@ def rl_stage(args: Args) -> dict:
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
         say(f"{len(pairs)} training pairs{' on crowded scenes' if args.train_crowded else ''}; {_world()} "
-            f"process(es); base given {given}: task "
+            f"process(es); {'on the crowded bench, ' if args.eval_crowded else ''}base given {given}: task "
             f"{fixed[base_row]['task']:.3f} consistency {fixed[base_row]['consistency']:.3f}; Demonstrator (toy "
             f"VLM's D): task "
             f"{demo['task']:.3f} consistency {demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
@@ -1634,7 +1657,7 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = 
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.suptitle(f"{fig5_setting(args)} on WorldTasks-toy: lambda_distill={args.lambda_distill}, "
+    fig.suptitle(f"{fig5_setting(args)} on {bench_title(args.eval_crowded)}: lambda_distill={args.lambda_distill}, "
                  f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\n"
                  f"Executor given {executor_given(args.executor_prompt)}")
     bench.save_figure(plt, fig, path)

@@ -368,6 +368,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                        "toy control"),
                       (["--train_crowded", "--dataset", "tasks.jsonl"], "--train_crowded draws the toy VLM's pairs"),
                       (["--train_crowded", "--model", "ltx2-tiny"], "crowded toy scenes: toy model, no --dataset"),
+                      (["--eval_crowded", "--eval_dataset", "bench.jsonl"], "--eval_crowded is a toy bench"),
+                      (["--stage", "pretrain", "--eval_crowded"], "--eval_crowded is read with --stage distill and rl only"),
                       (["--state_window", "0.7,0.3"], "--state_window: expected 0 <= LO < HI <= 1"),
                       (["--state_window", "mid"], "--state_window: expected two numbers"),
                       (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
@@ -442,6 +444,8 @@ def test_eval_cache_reuses_the_base_evaluation_only_for_the_same_base_and_settin
     train.base_evaluation(model, control)                                         # another Executor prompt
     train.base_evaluation(model, control, demonstrator=True)                      # the same Demonstrator
     assert calls == [False, True, False, False, False] and len(os.listdir(tmp_path / "cache")) == 5
+    train.base_evaluation(model, dataclasses.replace(a, eval_crowded=True))     # another bench
+    assert calls[5:] == [False] and len(os.listdir(tmp_path / "cache")) == 6
     timing = ("seconds", "seconds_per_video", "judge_seconds")
     assert {k: v for k, v in first.items() if k not in timing} == \
         {k: v for k, v in real(model, a).items() if k not in timing}              # the cached value is the value
@@ -872,6 +876,30 @@ def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(
         with pytest.raises(Handed) as e:
             train.distill_stage(dataclasses.replace(args, train_crowded=flag))
         assert sprites(e.value.args[0]) <= want and len(sprites(e.value.args[0]) & want) > 0
+
+
+def test_eval_crowded_evaluates_every_model_of_both_stages_and_draws_the_gif_on_the_crowded_bench(
+        tiny_ckpt, tmp_path, monkeypatch):
+    """--eval_crowded: every video the run generates for evaluation or its GIF (the base's, the Demonstrator's, the
+    Executor's) starts from a crowded bench pair's first frame; without it, from the bench's. Training rollouts do
+    not go through models.generate, so all it sees are the bench's videos; they and the updates are the same either
+    way."""
+    firsts = {b: {p.frame0.tobytes() for p in pairs(0.3)}
+              for b, pairs in (("toy", train.world.bench_pairs), ("crowded", train.world.crowded_pairs))}
+    real, seen = train.models.generate, []
+    monkeypatch.setattr(train.models, "generate",
+                        lambda m, frame0, *a, **k: seen.append(frame0) or real(m, frame0, *a, **k))
+    for stage, kw in (("rl", {"steps": 1}), ("distill", {"steps": 1, "variant": "on", "batch": 2})):
+        for bench_name, flag in (("toy", False), ("crowded", True)):
+            seen.clear()
+            args = dataclasses.replace(_args(tiny_ckpt, tmp_path / stage / bench_name, stage=stage, **kw),
+                                       eval_crowded=flag)
+            (train.rl_stage if stage == "rl" else train.distill_stage)(args)
+            rows = {f.tobytes() for frame0 in seen for f in frame0}
+            assert len(seen) >= 4, (stage, bench_name)          # the base, the Demonstrator, an Executor, the GIF
+            assert rows <= firsts[bench_name], (stage, bench_name)
+    steps = lambda d: [r for r in _metrics(d / "rl.jsonl") if "A" in r]  # noqa: E731
+    assert steps(tmp_path / "rl" / "toy") == steps(tmp_path / "rl" / "crowded")    # training itself is unchanged
 
 
 def test_a_group_is_group_size_rollouts_of_one_task_from_their_own_noise(tiny_ckpt, tmp_path):
