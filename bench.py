@@ -27,7 +27,7 @@ which a bystander moves the goal to the agent.
   python bench.py --condition vlm --guidance 3    # classifier-free guidance against the empty caption, w = 3
   python bench.py --crowded --condition vlm       # the crowded bench: 200 pairs on scenes of 5 sprites, where
                                                   # every scene a model trained on holds 2-4 (a test of transfer)
-  python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of finished rl runs
+  python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of train.py runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
   python bench.py --rank_rdistill --n 100 --seed 1   # within a group of rollouts given T, what r_distill and the
@@ -659,13 +659,19 @@ def file_digest(path: str) -> str:
 
 
 def read_run(run_dir: str) -> dict:
-    """A train.py rl run: its evaluations (step, task, agent, consistency, avg, still) from rl.jsonl, the share of
-    still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step `still` count over
-    its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from rl_summary.json when the
-    run finished. A ValueError names a line that is not JSON, or a run with no evaluation yet."""
+    """A finished or running train.py run: an rl run's evaluations (step, task, agent, consistency, avg, still) from
+    rl.jsonl, the share of still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step
+    `still` count over its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from
+    rl_summary.json when the run finished. A distill run of one --variant (distill.jsonl) gives its evaluations and,
+    once finished, its Demonstrator row; it logs no rollouts' stillness. "prompt": the Executor's; "bench": toy or
+    crowded (train.py --eval_crowded), None until the run has finished. A ValueError names a line that is not JSON,
+    a distill run of several variants, or a run with no evaluation yet."""
     path = os.path.join(run_dir, "rl.jsonl")
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"no rl.jsonl in {run_dir!r}")
+    distill = not os.path.isfile(path) and os.path.isfile(os.path.join(run_dir, "distill.jsonl"))
+    if distill:
+        path = os.path.join(run_dir, "distill.jsonl")
+    elif not os.path.isfile(path):
+        raise FileNotFoundError(f"no rl.jsonl (nor a distill run's distill.jsonl) in {run_dir!r}")
     records = []
     with open(path) as f:
         for i, line in enumerate(f, 1):
@@ -673,15 +679,25 @@ def read_run(run_dir: str) -> dict:
                 records.append(json.loads(line))
             except json.JSONDecodeError as e:
                 raise ValueError(f"{path} line {i} is not JSON ({e}): a run cut off while writing it?") from None
+    variants = sorted({r["variant"] for r in records if "variant" in r})
+    if len(variants) > 1:
+        raise ValueError(f"{path} holds the curves of {len(variants)} variants ({', '.join(variants)}): give a "
+                         f"distill run of one --variant")
     evals = [r for r in records if r.get("eval")]
     if not evals:
         raise ValueError(f"{path} holds no bench evaluation yet (a run evaluates every --eval_every steps)")
     steps = [{"step": r["step"], "still": r["still"] / len(r["A"])} for r in records
              if not r.get("eval") and "still" in r and r.get("A")]
-    summ = os.path.join(run_dir, "rl_summary.json")
+    summ = os.path.join(run_dir, "distill_summary.json" if distill else "rl_summary.json")
     summary = json.load(open(summ)) if os.path.isfile(summ) else {}
-    return {"evals": evals, "steps": steps, "fixed": summary.get("table", {}),
-            "prompt": summary.get("args", {}).get("executor_prompt", "task")}
+    if distill:     # written whole at the end: the Demonstrator row, the Executor's prompt and the bench
+        fixed = {DEMO_ROW: summary["demonstrator"]} if "demonstrator" in summary else {}
+        prompt, crowded = summary.get("executor_prompt", "task"), summary.get("bench") == "crowded"
+    else:
+        fixed, prompt = summary.get("table", {}), summary.get("args", {}).get("executor_prompt", "task")
+        crowded = summary.get("args", {}).get("eval_crowded", False)
+    return {"evals": evals, "steps": steps, "fixed": fixed, "prompt": prompt,
+            "bench": ("crowded" if crowded else "toy") if summary else None}
 
 
 def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
@@ -695,12 +711,17 @@ def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
 
 
 def compare_runs(runs: dict, path: str | None = None) -> str:
-    """Curves of several rl runs on one figure -- task and consistency vs step, the Demonstrator as a dashed line
-    (the paper's Fig. 5 layout), a third panel for the collapse to still videos where the runs logged it (the share
-    of still training rollouts, a trailing mean over 10 steps, rolling_still) -- and a markdown table of start, peak
-    and end. `runs` maps a label to a run dir, or to a list of run dirs (one per seed): then each curve is the mean
-    over seeds with a min-max band (curve_band), each cell mean ± sd, and the peak is the mean curve's."""
+    """Curves of several runs (read_run: rl, or distill of one variant) on one figure -- task and consistency vs
+    step, the Demonstrator as a dashed line (the paper's Fig. 5 layout), a third panel for the collapse to still
+    videos where the runs logged it (the share of still training rollouts, a trailing mean over 10 steps,
+    rolling_still) -- and a markdown table of start, peak and end. `runs` maps a label to a run dir, or to a list of
+    run dirs (one per seed): then each curve is the mean over seeds with a min-max band (curve_band), each cell
+    mean ± sd, and the peak is the mean curve's. Runs evaluated on different benches are refused."""
     groups = {label: [read_run(d) for d in ([ds] if isinstance(ds, str) else ds)] for label, ds in runs.items()}
+    benches = {r["bench"] for rs in groups.values() for r in rs} - {None}
+    if len(benches) > 1:
+        raise ValueError("the runs were evaluated on different benches (train.py --eval_crowded in some): their "
+                         "curves do not compare")
     stills = {label: [rolling_still(r["steps"]) for r in rs] for label, rs in groups.items()}
 
     def cell(xs):
@@ -735,7 +756,7 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
             if demo:
                 ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
             ax.set_xlabel("step")
-            ax.set_ylabel(f"bench {key}")
+            ax.set_ylabel(f"{'crowded ' if benches == {'crowded'} else ''}bench {key}")
             ax.grid(alpha=0.3)
         if drawn:
             ax = axes[2]
@@ -808,7 +829,8 @@ def main(argv=None):
                    help="with --gallery: a toy Executor checkpoint (train.py's executor_*.pt) for the last row")
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
     p.add_argument("--compare", nargs="+", metavar="LABEL=RUN_DIR[,RUN_DIR...]", default=None,
-                   help="instead of evaluating: plot and tabulate finished train.py rl runs (with --png; a third "
+                   help="instead of evaluating: plot and tabulate train.py rl runs, or distill runs of one "
+                        "--variant (with --png; a third "
                         "panel, the still training rollouts' share, where the runs logged it); several "
                         "comma-separated dirs under one label are seeds: mean, sd and a min-max band")
     p.add_argument("--handoff", metavar="A,B", default=None,
@@ -909,8 +931,8 @@ def main(argv=None):
             runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
             print(compare_runs(runs, a.png))
         except (ValueError, FileNotFoundError) as e:
-            print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of finished rl runs; several dirs "
-                  "are seeds of one setting)", file=sys.stderr)
+            print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of rl runs or distill runs of one "
+                  "--variant; several dirs are seeds of one setting)", file=sys.stderr)
             sys.exit(2)
         return
     models.use_cpu(a.threads)

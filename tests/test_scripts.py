@@ -302,7 +302,27 @@ def test_compare_runs_on_fake_runs(tmp_path):
     r = run("bench.py", "--compare", f"A={tmp_path / 'a'},{tmp_path / 'b'}", "--png", str(tmp_path / "cli.png"))
     assert r.returncode == 0 and "0.125 ± 0.106" in r.stdout and (tmp_path / "cli.png").stat().st_size > 1000
     r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
-    assert r.returncode == 2 and "no rl.jsonl" in r.stderr
+    assert r.returncode == 2 and "no rl.jsonl (nor a distill run's distill.jsonl)" in r.stderr
+    # a distill run of one variant (its curve, its Demonstrator once finished, its bench), and of two (refused)
+    d = tmp_path / "sft"
+    d.mkdir()
+    lines = [{"eval": True, "variant": "paired", "step": 10 * i, "task": t, "agent": 0.5, "consistency": 0.9,
+              "avg": 0.5, "still": 0.0} for i, t in enumerate([0.2, 0.6])]
+    (d / "distill.jsonl").write_text("".join(json.dumps(r) + "\n" for r in [lines[0], {"variant": "paired", "step": 1,
+                                                                                      "loss": 0.1}, lines[1]]))
+    assert bench.read_run(str(d))["bench"] is None and bench.read_run(str(d))["fixed"] == {}    # not finished
+    json.dump({"demonstrator": {"task": 0.6, "consistency": 0.9}, "variants": {}, "executor_prompt": "task",
+               "bench": "crowded"}, open(d / "distill_summary.json", "w"))
+    got = bench.read_run(str(d))
+    assert [e["task"] for e in got["evals"]] == [0.2, 0.6] and got["steps"] == [] and got["bench"] == "crowded"
+    assert got["fixed"] == {bench.DEMO_ROW: {"task": 0.6, "consistency": 0.9}}
+    assert "| SFT | 0.200 | 0.600 (10) | 0.600 |" in bench.compare_runs({"SFT": str(d)}, str(tmp_path / "sft.png"))
+    with pytest.raises(ValueError, match="evaluated on different benches"):       # a's summary: the bench
+        bench.compare_runs({"A": str(tmp_path / "a"), "SFT": str(d)})
+    bench.compare_runs({"B": str(tmp_path / "b"), "SFT": str(d)})                  # b is unfinished: no bench known
+    (d / "distill.jsonl").write_text((d / "distill.jsonl").read_text() + json.dumps({**lines[0], "variant": "on"}))
+    with pytest.raises(ValueError, match=r"the curves of 2 variants \(on, paired\)"):
+        bench.read_run(str(d))
     # a run not yet evaluated, one cut off mid-line, seeds that share no evaluated step: a message, not max()'s
     for name, text in (("new", '{"step": 1, "loss": 0.1}\n'), ("cut", '{"step": 1, "loss": 0.1}\n{"step": 2, "lo'),
                        ("odd", '{"eval": true, "step": 5, "task": 0.1}\n')):
