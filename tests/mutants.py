@@ -614,6 +614,8 @@ MUTANTS = {
          "the evaluations on the bench under --eval_crowded"),
         ("    pairs = eval_pairs(args)[:n]", "    pairs = world.bench_pairs(args.error_rate)[:n]",
          "the GIF on the bench under --eval_crowded"),
+        ("    BENCH = None            # the toy benches only", "    pass            # the toy benches only",
+         "a stale --eval_dataset bench read by the distill stage"),
         ('           **({"eval_crowded": True} if args.eval_crowded else {}),',
          "           **({}),", "the eval cache serving the bench's base scores to an --eval_crowded run"),
         ('and set(args.variant.split(",")) <= {"off", "on", "dmd", "paired"})',
