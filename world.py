@@ -528,8 +528,14 @@ def crowded_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     """An out-of-distribution bench (bench.py --crowded), the toy's counterpart of the paper's transfer tests
     (Sec. 4.7's DreamGen, App. A.5's VBVR): 200 pairs made as the bench's are, from their own seed, on scenes of
     CROWDED_SPRITES sprites, where every scene the models pretrain and train on, and the bench's, holds 2-4. The
-    tasks and their words are the bench's kinds; only the scenes are new, and more crowded."""
-    return make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES)
+    tasks and their words are the bench's kinds; only the scenes are new, and more crowded. Made once per
+    (error_rate, n), as the bench is: train.py --eval_crowded reads it at every evaluation."""
+    return list(_crowded_pairs(float(error_rate), n))
+
+
+@functools.lru_cache(maxsize=8)
+def _crowded_pairs(error_rate: float, n: int) -> tuple:
+    return tuple(make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES))
 
 
 def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> list[Pair]:

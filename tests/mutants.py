@@ -291,8 +291,8 @@ MUTANTS = {
     "world.py": (JUDGES, [
         ("    n = int(rng.integers(sprites[0], sprites[1] + 1))", "    n = int(rng.integers(2, 5))",
          "the crowded bench's scenes drawn with 2-4 sprites"),
-        ("    return make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES)",
-         "    return make_pairs(n, CROWDED_SEED, error_rate)", "the crowded bench on the bench's kind of scene"),
+        ("    return tuple(make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES))",
+         "    return tuple(make_pairs(n, CROWDED_SEED, error_rate))", "the crowded bench on the bench's kind of scene"),
         ("        scene = random_scene(rng, sprites)", "        scene = random_scene(rng)",
          "make_pairs' sprites not reaching its scenes"),
         ("                      sprites=CROWDED_SPRITES if crowded else SPRITES)",
