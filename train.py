@@ -894,8 +894,9 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
 def distill_stage(args: Args) -> dict:
     """Run each variant from the same base; plot task score vs step (Fig. 4 left) with the Demonstrator and the
     base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
-    global BENCH
-    BENCH = None            # the toy benches only (--eval_dataset is the rl stage's), whatever ran before in-process
+    global BENCH, JUDGE     # the toy benches and judges only (--eval_dataset, --judge are the rl stage's), whatever
+    BENCH = None            # an rl run before it in this process set
+    JUDGE = None
     seed_everything(args.seed, args.threads)
     os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()

@@ -507,12 +507,14 @@ def _error_free_pairs(n: int, seed: int, exclude: frozenset | None, sprites: tup
 def bench_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     """The fixed WorldTasks-toy bench split (Sec. 4.1.2): 200 pairs on 200 scenes, from a fixed seed.
     The scenes and tasks do not depend on `error_rate`; only which descriptions are corrupted does."""
-    return list(_bench_pairs(float(error_rate), n))
+    return list(_fixed_pairs(n, BENCH_SEED, float(error_rate), SPRITES))
 
 
 @functools.lru_cache(maxsize=8)
-def _bench_pairs(error_rate: float, n: int) -> tuple:
-    return tuple(make_pairs(n, BENCH_SEED, error_rate))
+def _fixed_pairs(n: int, seed: int, error_rate: float, sprites: tuple[int, int]) -> tuple:
+    """make_pairs of a fixed bench (bench_pairs, crowded_pairs), made once per argument set: every evaluation of a
+    run reads the same pairs."""
+    return tuple(make_pairs(n, seed, error_rate, sprites=sprites))
 
 
 @functools.lru_cache(maxsize=2)
@@ -530,12 +532,7 @@ def crowded_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     CROWDED_SPRITES sprites, where every scene the models pretrain and train on, and the bench's, holds 2-4. The
     tasks and their words are the bench's kinds; only the scenes are new, and more crowded. Made once per
     (error_rate, n), as the bench is: train.py --eval_crowded reads it at every evaluation."""
-    return list(_crowded_pairs(float(error_rate), n))
-
-
-@functools.lru_cache(maxsize=8)
-def _crowded_pairs(error_rate: float, n: int) -> tuple:
-    return tuple(make_pairs(n, CROWDED_SEED, error_rate, sprites=CROWDED_SPRITES))
+    return list(_fixed_pairs(n, CROWDED_SEED, float(error_rate), CROWDED_SPRITES))
 
 
 def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> list[Pair]:

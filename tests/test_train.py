@@ -891,9 +891,10 @@ def test_eval_crowded_evaluates_every_model_of_both_stages_and_draws_the_gif_on_
                         lambda m, frame0, *a, **k: seen.append(frame0) or real(m, frame0, *a, **k))
     for stage, kw in (("rl", {"steps": 1}), ("distill", {"steps": 1, "variant": "on", "batch": 2})):
         for bench_name, flag in (("toy", False), ("crowded", True)):
-            seen.clear()        # a stale bench, as an in-process rl run with --eval_dataset leaves train.BENCH, unread
-            monkeypatch.setattr(train, "BENCH", train.world.bench_pairs(0.3)[:4] if flag else
+            seen.clear()        # a stale bench and judge, as an in-process rl run with --eval_dataset and --judge
+            monkeypatch.setattr(train, "BENCH", train.world.bench_pairs(0.3)[:4] if flag else   # leaves them, unread
                                 train.world.crowded_pairs(0.3)[:4])
+            monkeypatch.setattr(train, "JUDGE", object())       # no .bench: reading it fails
             args = dataclasses.replace(_args(tiny_ckpt, tmp_path / stage / bench_name, stage=stage, **kw),
                                        eval_crowded=flag)
             (train.rl_stage if stage == "rl" else train.distill_stage)(args)
