@@ -510,7 +510,7 @@ def bench_pairs(error_rate: float, n: int = 200) -> list[Pair]:
     return list(_fixed_pairs(n, BENCH_SEED, float(error_rate), SPRITES))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=16)
 def _fixed_pairs(n: int, seed: int, error_rate: float, sprites: tuple[int, int]) -> tuple:
     """make_pairs of a fixed bench (bench_pairs, crowded_pairs), made once per argument set: every evaluation of a
     run reads the same pairs."""
