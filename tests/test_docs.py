@@ -1,4 +1,5 @@
-"""The README and docs/: every relative link and anchor resolves, and CI runs the README's test command."""
+"""The README and docs/: every relative link and anchor resolves, every code name they quote is in the code, and CI
+runs the README's test command."""
 import os
 import re
 
@@ -62,6 +63,45 @@ def test_readme_installs_what_ci_installs():
     constraints = steps[req_at][steps[req_at].index("-c") + 1]
     assert torch_at < req_at and steps[req_at][:2] == ["pip", "install"]
     assert any(s[:3] == ["echo", pin, ">"] and s[3] == constraints for s in steps[:req_at])
+
+
+MODULES = ("flow", "models", "distill", "rl", "reward", "world", "bench", "train", "report")
+
+
+def code_names(text: str) -> list:
+    """The repository's names a page quotes as code: `module.attr[.attr]` (a call's arguments allowed) for the modules
+    above, and `tests/file.py::test_name`; file names such as `rl.jsonl` or `train.py` are not names."""
+    names = re.findall(r"`((?:%s)\.[A-Za-z_][\w.]*)(?:\([^`]*\))?`" % "|".join(MODULES), text)
+    return ([n for n in names if not re.search(r"\.(py|jsonl|json|pt|png|gif|md)$", n)]
+            + re.findall(r"`(tests/test_\w+\.py::\w+)", text))
+
+
+def test_code_names_in_the_docs_resolve():
+    """A reader follows a name from the README or docs/ into the code: each must still be there (a renamed function
+    leaves no stale name behind). Older stops' pages name what the code held then in words, not as code."""
+    import importlib
+    bad, n = [], 0
+    for page in PAGES:
+        for name in code_names(open(os.path.join(ROOT, page), encoding="utf-8").read()):
+            n += 1
+            if "::" in name:
+                path, test = name.split("::")
+                ok = re.search(rf"^def {test}\(", open(os.path.join(ROOT, path), encoding="utf-8").read(), re.M)
+            else:
+                module, *attrs = name.split(".")
+                obj, ok = importlib.import_module(module), True
+                for a in attrs:
+                    ok = ok and hasattr(obj, a)
+                    obj = getattr(obj, a, None)
+            if not ok:
+                bad.append(f"{page}: {name}")
+    assert n > 100 and not bad, "\n".join(bad)
+
+
+def test_code_names_reads_names_not_files():
+    assert code_names("`rl.awm` and `bench.evaluate(model, pairs)`, `rl.jsonl`, `train.py`, `RL.x`, "
+                      "`tests/test_rl.py::test_awm_weight` and `flow.sde_step`") == \
+        ["rl.awm", "bench.evaluate", "flow.sde_step", "tests/test_rl.py::test_awm_weight"]
 
 
 def cited(doc: str) -> set:
