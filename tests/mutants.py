@@ -512,6 +512,10 @@ MUTANTS = {
          '    except RuntimeError as e:\n        print(f"error: {e}", file=sys.stderr)\n        sys.exit(2)',
          "a failed run's report ending as bad input"),
     ]),
+    "report.py (progress)": (["tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
+        ('so_far / len(finished) * (len(todo) - len(finished)):.1f}', 'so_far / len(finished) * len(todo):.1f}',
+         "report.py's ETA counting the finished runs as still to run"),
+    ]),
     "train.py": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',
          "a damaged --eval_cache file ending the run in a traceback"),

@@ -1,6 +1,7 @@
 """report.py, the reproduction report: its arithmetic over seeds, its denominators, and a --quick run end to end."""
 import json
 import os
+import re
 import types
 
 import numpy as np
@@ -114,6 +115,8 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     assert "| Base + SFT (T) |" in md and "| WMSD (T) |" in md and " ± " in md
     runs = len(report.EXPERIMENTS) * 2
     assert f"0 of {runs} runs already done" in r.stdout and f"[{runs}/{runs}]" in r.stdout
+    etas = [float(x) for x in re.findall(r"report: \[\d+/\d+\].*ETA ([0-9.]+) min\)", r.stdout)]
+    assert len(etas) == runs and etas[-1] == 0.0 and etas[0] > 0   # a progress line per run, its ETA to the end
     cmd = json.load(open(out / "runs" / "wmsd_s1" / "report_cmd.json"))["cmd"]
     assert cmd[cmd.index("--seed") + 1] == "1" and "--quick" not in cmd
     again = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
