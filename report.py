@@ -114,7 +114,7 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
         json.dump({"cmd": cmd[2:], "base": base, "minutes": (time.time() - t0) / 60},
                   open(os.path.join(d, "report_cmd.json"), "w"))
         finished.append(name)
-        so_far = (time.time() - start) / 60    # the ETA: the time a run has taken so far, on average, times those left
+        so_far = (time.time() - start) / 60    # the ETA: the minutes so far per finished run, times the runs left
         print(f"report: [{len(finished)}/{len(todo)}] {name} seed {seed} done in {(time.time() - t0) / 60:.1f} min "
               f"({so_far:.1f} min so far, ETA {so_far / len(finished) * (len(todo) - len(finished)):.1f} min)",
               flush=True)
