@@ -894,8 +894,10 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
 def distill_stage(args: Args) -> dict:
     """Run each variant from the same base; plot task score vs step (Fig. 4 left) with the Demonstrator and the
     base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
-    global BENCH, JUDGE     # the toy benches and judges only (--eval_dataset and --judge are the rl stage's),
-    BENCH, JUDGE = None, None                   # whatever an rl run before it in this process set
+    # the toy benches and judges only (--eval_dataset and --judge are the rl stage's), whatever an rl run before it in
+    # this process set
+    global BENCH, JUDGE
+    BENCH, JUDGE = None, None
     seed_everything(args.seed, args.threads)
     os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()
