@@ -291,6 +291,7 @@ def read_sprites(frame: np.ndarray) -> list[Sprite]:
         if not bs or bs[0].size < 4:
             continue
         x0, y0, x1, y1 = bs[0].box
+        # the box's centre, not the pixel mean: a triangle's pixel mean lies 2/7 row below it (SHAPE_OFFSET)
         cx, cy = (x0 + x1) // 2, (y0 + y1) // 2
         patch = np.zeros((3, 3), bool)
         for dy in range(3):
@@ -298,7 +299,6 @@ def read_sprites(frame: np.ndarray) -> list[Sprite]:
                 yy, xx = cy - 1 + dy, cx - 1 + dx
                 patch[dy, dx] = 0 <= yy < H and 0 <= xx < W and mask[yy, xx]
         shape = max(SHAPES, key=lambda s: (SHAPES[s] == patch).sum())
-        # the centre of the triangle's bounding box is one row below its pixel mean
         found.append(Sprite(colour, shape, cx, cy))
     return found
 
