@@ -2,8 +2,9 @@
 
 Runs every experiment of EXPERIMENTS as a train.py run per training seed, then writes report.md and the figures:
   Tab. 1 and Tab. 4   base given T, +SFT, paired SFT, the Demonstrator (+VLM) and WMSD's Executor on the 200-pair bench
-  Fig. 4 left         the self-distillation variants (off-, on-policy, DMD, SFT) vs step
-  Fig. 4 right        the task score vs the anchor weight beta_d (Eq. 12)
+  Fig. 4 left         the self-distillation variants (off-, on-policy, DMD, SFT) vs step: the task score, and the
+                      average of task, agent and consistency the paper plots
+  Fig. 4 right        the task and the average score vs the anchor weight beta_d (Eq. 12)
   Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher, (iv) Alg. 2
   Fig. 7              the task score per task family and the agent score per agent type
   Fig. 8              WMSD with and without the consistency reward, frames side by side
@@ -49,6 +50,7 @@ EXPERIMENTS = {
     "distill": ("distill", ["--variant", "off,on,dmd,sft,paired"]),        # Fig. 4 left; Tab. 1's SFT rows
 }
 BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}
+FIG4 = {"task": "the task score", "avg": "the average of task, agent, consistency (the paper's)"}   # Fig. 4's panels
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
@@ -176,37 +178,45 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "| model | task | agent | consistency | avg | solved |", "|---|---|---|---|---|---|"]
     for name, rs in rows.items():
         lines.append(f"| {name} | " + " | ".join(table4_cell(rs, k) for k in (*K, "solved")) + " |")
-    # Fig. 4 left: self-distillation variants (and SFT) vs step
+    # Fig. 4 left: self-distillation variants (and SFT) vs step. The paper plots the average WorldTasks score, the
+    # mean of task, agent and consistency (its other panel, PickScore, has no toy counterpart); the task score is the
+    # one issue 3's target names. Both, side by side; Fig. 4 right likewise.
     dist = [json.load(open(os.path.join(dirs[("distill", s)], "distill_summary.json"))) for s in seeds]
-    plt, fig, (ax,) = figure(1, 6)
-    for v in dist[0]["variants"]:
-        curve_band(ax, [d["variants"][v] for d in dist], "task", v)
-    ax.axhline(mean_sd(d["demonstrator"]["task"] for d in dist)[0], color="k", ls="--", lw=1, label="Demonstrator")
-    ax.set(xlabel="step", ylabel="bench task (Executor given T)", title="Fig. 4 left: self-distillation variants")
-    ax.legend(fontsize=7)
+    plt, fig, axes = figure(2, 5.2)
+    for ax, key in zip(axes, FIG4):
+        for v in dist[0]["variants"]:
+            curve_band(ax, [d["variants"][v] for d in dist], key, v)
+        ax.axhline(mean_sd(d["demonstrator"][key] for d in dist)[0], color="k", ls="--", lw=1, label="Demonstrator")
+        ax.set(xlabel="step", ylabel=f"bench {key}", title=FIG4[key])
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Fig. 4 left: self-distillation variants, the Executor given T", fontsize=10)
     save_figure(plt, fig, os.path.join(out, "fig4_left.png"))
     lines += ["", "## Fig. 4 left: self-distillation variants", "", "![](fig4_left.png)", "",
-              "| variant | task @0 | task @end | consistency @end |", "|---|---|---|---|"]
+              "`avg` is the paper's metric in Fig. 4, the mean of the task, agent and consistency scores.", "",
+              "| variant | task @0 | task @end | avg @0 | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for v in dist[0]["variants"]:
-        lines.append(f"| {v} | {fmt(d['variants'][v][0]['task'] for d in dist)} | "
-                     f"{fmt(d['variants'][v][-1]['task'] for d in dist)} | "
-                     f"{fmt(d['variants'][v][-1]['consistency'] for d in dist)} |")
-    # Fig. 4 right: task score vs beta_d
+        lines.append(f"| {v} | " + " | ".join(fmt(d["variants"][v][i][k] for d in dist) for k, i in (
+            ("task", 0), ("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1))) + " |")
+    # Fig. 4 right: the task and the average score vs beta_d
     curves = {name: [read_run(dirs[(name, s)]) for s in seeds] for name in EXPERIMENTS if name != "distill"}
-    plt, fig, (ax,) = figure(1, 5)
-    for what, pick in (("end", lambda ev: ev[-1]["task"]), ("peak", lambda ev: max(e["task"] for e in ev))):
-        ms = [mean_sd(pick(r["evals"]) for r in curves[name]) for name in BETAS]
-        ax.errorbar(list(BETAS.values()), [m for m, _ in ms], [sd for _, sd in ms], marker="o", capsize=3,
-                    label=f"task @{what}")
-    ax.set_xscale("symlog", linthresh=0.01)
-    ax.set(xlabel="β_d (anchor weight)", ylabel="bench task (Executor given T)", title="Fig. 4 right: anchor weight")
-    ax.legend(fontsize=7)
+    plt, fig, axes = figure(2, 5)
+    for ax, key in zip(axes, FIG4):
+        for what, pick in (("end", lambda ev: ev[-1][key]), ("peak", lambda ev: max(e[key] for e in ev))):
+            ms = [mean_sd(pick(r["evals"]) for r in curves[name]) for name in BETAS]
+            ax.errorbar(list(BETAS.values()), [m for m, _ in ms], [sd for _, sd in ms], marker="o", capsize=3,
+                        label=f"@{what}")
+        ax.set_xscale("symlog", linthresh=0.01)
+        ax.set(xlabel="β_d (anchor weight)", ylabel=f"bench {key}", title=FIG4[key])
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Fig. 4 right: the anchor weight, the Executor given T", fontsize=10)
     save_figure(plt, fig, os.path.join(out, "fig4_right.png"))
-    lines += ["", "## Fig. 4 right: task score vs the anchor weight β_d", "", "![](fig4_right.png)", "",
-              "| β_d | task peak | task @end | consistency @end |", "|---|---|---|---|"]
+    lines += ["", "## Fig. 4 right: the task and the average score vs the anchor weight β_d", "", "![](fig4_right.png)",
+              "", "| β_d | task peak | task @end | avg peak | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for name, b in BETAS.items():
         lines.append(f"| {b:g} | {fmt(max(e['task'] for e in r['evals']) for r in curves[name])} | "
                      f"{fmt(r['evals'][-1]['task'] for r in curves[name])} | "
+                     f"{fmt(max(e['avg'] for e in r['evals']) for r in curves[name])} | "
+                     f"{fmt(r['evals'][-1]['avg'] for r in curves[name])} | "
                      f"{fmt(r['evals'][-1]['consistency'] for r in curves[name])} |")
     # Fig. 5: the four training settings
     demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]

@@ -516,6 +516,14 @@ MUTANTS = {
         ('so_far / len(finished) * (len(todo) - len(finished)):.1f}', 'so_far / len(finished) * len(todo):.1f}',
          "report.py's ETA counting the finished runs as still to run"),
     ]),
+    "report.py (Fig. 4)": (["tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
+        ('("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1)',
+         '("task", -1), ("task", 0), ("task", -1), ("consistency", -1)',
+         "Fig. 4 left's table giving the task score as the paper's average"),
+        ("{fmt(max(e['avg'] for e in r['evals']) for r in curves[name])}",
+         "{fmt(max(e['task'] for e in r['evals']) for r in curves[name])}",
+         "Fig. 4 right's average peak read off the task curve"),
+    ]),
     "train.py": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',
          "a damaged --eval_cache file ending the run in a traceback"),

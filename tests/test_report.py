@@ -113,6 +113,14 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     for heading in ("Table 1", "Table 4", "Fig. 4 left", "Fig. 4 right", "Fig. 5", "Fig. 7", "Fig. 8", "error rate"):
         assert heading in md, heading
     assert "| Base + SFT (T) |" in md and "| WMSD (T) |" in md and " ± " in md
+    # Fig. 4's panels: the task score and the paper's average of the three, read from the runs over both seeds
+    dist = [json.load(open(out / "runs" / f"distill_s{s}" / "distill_summary.json")) for s in (0, 1)]
+    cells = [bench.fmt(d["variants"]["on"][i][k] for d in dist) for k, i in (("task", -1), ("avg", 0), ("avg", -1))]
+    assert f"| on | {bench.fmt(d['variants']['on'][0]['task'] for d in dist)} | {' | '.join(cells)} |" in md
+    beta = [report.read_run(out / "runs" / f"beta_0.1_s{s}")["evals"] for s in (0, 1)]
+    assert (f"| 0.1 | {bench.fmt(max(e['task'] for e in ev) for ev in beta)} | "
+            f"{bench.fmt(ev[-1]['task'] for ev in beta)} | {bench.fmt(max(e['avg'] for e in ev) for ev in beta)} | "
+            f"{bench.fmt(ev[-1]['avg'] for ev in beta)} |") in md
     runs = len(report.EXPERIMENTS) * 2
     assert f"0 of {runs} runs already done" in r.stdout and f"[{runs}/{runs}]" in r.stdout
     etas = [float(x) for x in re.findall(r"report: \[\d+/\d+\].*ETA ([0-9.]+) min\)", r.stdout)]
