@@ -5,7 +5,8 @@ Runs every experiment of EXPERIMENTS as a train.py run per training seed, then w
   Fig. 4 left         the self-distillation variants (off-, on-policy, DMD, SFT) vs step: the task score, and the
                       average of task, agent and consistency the paper plots
   Fig. 4 right        the task and the average score vs the anchor weight beta_d (Eq. 12)
-  Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher, (iv) Alg. 2
+  Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher, (iv) Alg. 2;
+                      task, agent and consistency, as the paper's
   Fig. 7              the task score per task family and the agent score per agent type
   Fig. 8              WMSD with and without the consistency reward, frames side by side
   beyond the paper    the Executor's gain over the Demonstrator vs the toy VLM's error rate
@@ -220,14 +221,14 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
                      f"{fmt(r['evals'][-1]['consistency'] for r in curves[name])} |")
     # Fig. 5: the four training settings
     demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]
-    plt, fig, axes = figure(2)
-    for ax, key in zip(axes, ("task", "consistency")):
+    plt, fig, axes = figure(3, 4.5)
+    for ax, key in zip(axes, KEYS):   # the paper's three evaluation dimensions
         for name, label in FIG5.items():
             curve_band(ax, [r["evals"] for r in curves[name]], key, label)
         ax.axhline(mean_sd(d[key] for d in demo)[0], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
-        ax.set(xlabel="step", ylabel=f"bench {key} (Executor given T)")
+        ax.set(xlabel="step", ylabel=f"bench {key}")
     axes[0].legend(fontsize=7)
-    axes[0].set_title("Fig. 5: training settings")
+    fig.suptitle("Fig. 5: training settings, the Executor given T", fontsize=10)
     save_figure(plt, fig, os.path.join(out, "fig5.png"))
     lines += ["", "## Fig. 5: training settings", "", "![](fig5.png)", "",
               "| setting | task @0 | task peak | task @end | agent @end | consistency @end |", "|---|---|---|---|---|---|"]
