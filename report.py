@@ -2,11 +2,12 @@
 
 Runs every experiment of EXPERIMENTS as a train.py run per training seed, then writes report.md and the figures:
   Tab. 1 and Tab. 4   base given T, +SFT, paired SFT, the Demonstrator (+VLM) and WMSD's Executor on the 200-pair bench
-  Fig. 4 left         the self-distillation variants (off-, on-policy, DMD, SFT) vs step: the task score, and the
-                      average of task, agent and consistency the paper plots
+  Fig. 4 left         the self-distillation variants (off-, on-policy, DMD, SFT, and the full on-policy objective:
+                      Eq. 12 with r_distill the only reward) vs step: the task score, and the average of task, agent
+                      and consistency the paper plots
   Fig. 4 right        the task and the average score vs the anchor weight beta_d (Eq. 12)
-  Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher, (iv) Alg. 2;
-                      task, agent and consistency, as the paper's
+  Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher,
+                      (iv) Alg. 2; task, agent and consistency, as the paper's
   Fig. 7              the task score per task family and the agent score per agent type
   Fig. 8              WMSD with and without the consistency reward, frames side by side
   beyond the paper    the Executor's gain over the Demonstrator vs the toy VLM's error rate
@@ -14,7 +15,7 @@ Finished runs are kept in OUT_DIR/runs and reused when their command and base ch
 interrupted report loses nothing. The arithmetic over seeds (mean ± sd, Tab. 4's successes / valid) is here; the
 evaluation itself is bench.evaluate.
 
-  python report.py results                 # 33 runs: 11 experiments x seeds 0 1 2, then every table and figure
+  python report.py results                 # 36 runs: 12 experiments x seeds 0 1 2, then every table and figure
   python report.py /tmp/report --quick     # the same plumbing with tiny runs (its numbers mean nothing)
 """
 from __future__ import annotations
@@ -49,8 +50,10 @@ EXPERIMENTS = {
     "err_0": ("rl", ["--error_rate", "0"]),                                # gain over the Demonstrator vs VLM errors
     "err_0.5": ("rl", ["--error_rate", "0.5"]),
     "distill": ("distill", ["--variant", "off,on,dmd,sft,paired"]),        # Fig. 4 left; Tab. 1's SFT rows
+    "on_full": ("rl", ["--lambda_task", "0", "--lambda_cons", "0"]),       # Fig. 4 left: the full on-policy objective
 }
 BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}
+ON_FULL = "on + r_distill (Eq. 12, no judges)"   # Fig. 4 left's full on-policy objective: the on_full runs
 FIG4 = {"task": "the task score", "avg": "the average of task, agent, consistency (the paper's)"}   # Fig. 4's panels
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
@@ -179,14 +182,17 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "| model | task | agent | consistency | avg | solved |", "|---|---|---|---|---|---|"]
     for name, rs in rows.items():
         lines.append(f"| {name} | " + " | ".join(table4_cell(rs, k) for k in (*K, "solved")) + " |")
-    # Fig. 4 left: self-distillation variants (and SFT) vs step. The paper plots the average WorldTasks score, the
-    # mean of task, agent and consistency (its other panel, PickScore, has no toy counterpart); the task score is the
-    # one issue 3's target names. Both, side by side; Fig. 4 right likewise.
+    # Fig. 4 left: self-distillation variants (SFT, and the full objective's rl runs too) vs step. The paper plots
+    # the average WorldTasks score, the mean of task, agent and consistency (its other panel, PickScore, has no toy
+    # counterpart); the task score is the one issue 3's target names. Both, side by side; Fig. 4 right likewise.
     dist = [json.load(open(os.path.join(dirs[("distill", s)], "distill_summary.json"))) for s in seeds]
+    variants = {v: [d["variants"][v] for d in dist] for v in dist[0]["variants"]}   # name -> an eval curve per seed
+    curves = {name: [read_run(dirs[(name, s)]) for s in seeds] for name in EXPERIMENTS if name != "distill"}
+    variants[ON_FULL] = [r["evals"] for r in curves["on_full"]]
     plt, fig, axes = figure(2, 5.2)
     for ax, key in zip(axes, FIG4):
-        for v in dist[0]["variants"]:
-            curve_band(ax, [d["variants"][v] for d in dist], key, v)
+        for v, runs in variants.items():
+            curve_band(ax, runs, key, v)
         ax.axhline(mean_sd(d["demonstrator"][key] for d in dist)[0], color="k", ls="--", lw=1, label="Demonstrator")
         ax.set(xlabel="step", ylabel=f"bench {key}", title=FIG4[key])
     axes[0].legend(fontsize=7)
@@ -195,11 +201,10 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     lines += ["", "## Fig. 4 left: self-distillation variants", "", "![](fig4_left.png)", "",
               "`avg` is the paper's metric in Fig. 4, the mean of the task, agent and consistency scores.", "",
               "| variant | task @0 | task @end | avg @0 | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
-    for v in dist[0]["variants"]:
-        lines.append(f"| {v} | " + " | ".join(fmt(d["variants"][v][i][k] for d in dist) for k, i in (
+    for v, runs in variants.items():
+        lines.append(f"| {v} | " + " | ".join(fmt(ev[i][k] for ev in runs) for k, i in (
             ("task", 0), ("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1))) + " |")
     # Fig. 4 right: the task and the average score vs beta_d
-    curves = {name: [read_run(dirs[(name, s)]) for s in seeds] for name in EXPERIMENTS if name != "distill"}
     plt, fig, axes = figure(2, 5)
     for ax, key in zip(axes, FIG4):
         for what, pick in (("end", lambda ev: ev[-1][key]), ("peak", lambda ev: max(e[key] for e in ev))):
@@ -211,8 +216,9 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     axes[0].legend(fontsize=7)
     fig.suptitle("Fig. 4 right: the anchor weight, the Executor given T", fontsize=10)
     save_figure(plt, fig, os.path.join(out, "fig4_right.png"))
-    lines += ["", "## Fig. 4 right: the task and the average score vs the anchor weight β_d", "", "![](fig4_right.png)",
-              "", "| β_d | task peak | task @end | avg peak | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
+    lines += ["", "## Fig. 4 right: the task and the average score vs the anchor weight β_d", "",
+              "![](fig4_right.png)", "",
+              "| β_d | task peak | task @end | avg peak | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for name, b in BETAS.items():
         lines.append(f"| {b:g} | {fmt(max(e['task'] for e in r['evals']) for r in curves[name])} | "
                      f"{fmt(r['evals'][-1]['task'] for r in curves[name])} | "

@@ -516,13 +516,18 @@ MUTANTS = {
         ('so_far / len(finished) * (len(todo) - len(finished)):.1f}', 'so_far / len(finished) * len(todo):.1f}',
          "report.py's ETA counting the finished runs as still to run"),
     ]),
-    "report.py (Fig. 4)": (["tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
+    "report.py (Fig. 4)": (["tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs",
+                            "tests/test_report.py::test_each_experiment_sets_what_its_figure_says_it_does"], [
         ('("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1)',
          '("task", -1), ("task", 0), ("task", -1), ("consistency", -1)',
          "Fig. 4 left's table giving the task score as the paper's average"),
         ("{fmt(max(e['avg'] for e in r['evals']) for r in curves[name])}",
          "{fmt(max(e['task'] for e in r['evals']) for r in curves[name])}",
          "Fig. 4 right's average peak read off the task curve"),
+        ('    variants[ON_FULL] = [r["evals"] for r in curves["on_full"]]',
+         '    variants[ON_FULL] = [r["evals"] for r in curves["wmsd"]]', "Fig. 4 left's full objective drawn from WMSD's runs"),
+        ('    "on_full": ("rl", ["--lambda_task", "0", "--lambda_cons", "0"]),',
+         '    "on_full": ("rl", ["--lambda_task", "0"]),', "Fig. 4 left's full objective keeping r_cons"),
     ]),
     "train.py": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',

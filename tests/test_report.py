@@ -117,6 +117,9 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     dist = [json.load(open(out / "runs" / f"distill_s{s}" / "distill_summary.json")) for s in (0, 1)]
     cells = [bench.fmt(d["variants"]["on"][i][k] for d in dist) for k, i in (("task", -1), ("avg", 0), ("avg", -1))]
     assert f"| on | {bench.fmt(d['variants']['on'][0]['task'] for d in dist)} | {' | '.join(cells)} |" in md
+    full = [report.read_run(out / "runs" / f"on_full_s{s}")["evals"] for s in (0, 1)]   # the full objective's row
+    assert f"| {report.ON_FULL} | " + " | ".join(bench.fmt(ev[i][k] for ev in full) for k, i in (
+        ("task", 0), ("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1))) + " |" in md
     beta = [report.read_run(out / "runs" / f"beta_0.1_s{s}")["evals"] for s in (0, 1)]
     assert (f"| 0.1 | {bench.fmt(max(e['task'] for e in ev) for ev in beta)} | "
             f"{bench.fmt(ev[-1]['task'] for ev in beta)} | {bench.fmt(max(e['avg'] for e in ev) for ev in beta)} | "
@@ -127,8 +130,14 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     assert len(etas) == runs and etas[-1] == 0.0 and etas[0] > 0   # a progress line per run, its ETA to the end
     cmd = json.load(open(out / "runs" / "wmsd_s1" / "report_cmd.json"))["cmd"]
     assert cmd[cmd.index("--seed") + 1] == "1" and "--quick" not in cmd
+    for s in (0, 1):   # the full objective's row reads its own runs (in the tiny runs its numbers may equal WMSD's)
+        log = out / "runs" / f"on_full_s{s}" / "rl.jsonl"
+        recs = [json.loads(line) for line in log.read_text().splitlines()]
+        log.write_text("".join(json.dumps({**r, "avg": 0.999} if r.get("eval") else r) + "\n" for r in recs))
     again = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
     assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
+    row = next(line for line in (out / "report.md").read_text().splitlines() if line.startswith(f"| {report.ON_FULL} |"))
+    assert row.split(" | ")[3:5] == ["0.999 ± 0.000"] * 2, row
 
 
 def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
@@ -175,7 +184,8 @@ def test_the_reports_runs_start_from_its_base_and_run_again_when_that_base_is_re
 def test_each_experiment_sets_what_its_figure_says_it_does():
     """EXPERIMENTS through train.py's own parser: Fig. 5's four runs select the settings fig5_setting names, Fig. 4
     right's beta_d and the error-rate figure's rates are the flags' values, Fig. 8's ablation differs from WMSD in
-    r_cons's weight alone, and the distill run trains the SFT executors Tab. 1 loads."""
+    r_cons's weight alone, the distill run trains the SFT executors Tab. 1 loads, and Fig. 4 left's full on-policy
+    objective is WMSD without the judges' rewards."""
     def parse(name):
         stage, flags = report.EXPERIMENTS[name]
         return train.parse_args(["--stage", stage, *flags])
@@ -188,6 +198,9 @@ def test_each_experiment_sets_what_its_figure_says_it_does():
     wmsd, no_cons = vars(parse("wmsd")), vars(parse("no_cons"))
     assert [k for k in wmsd if wmsd[k] != no_cons[k]] == ["lambda_cons"] and no_cons["lambda_cons"] == 0
     assert {"sft", "paired"} <= set(parse("distill").variant.split(","))
+    full = vars(parse("on_full"))   # Fig. 4 left's full on-policy objective: WMSD with r_distill the only reward
+    assert [k for k in wmsd if wmsd[k] != full[k]] == ["lambda_task", "lambda_cons"]
+    assert full["lambda_task"] == full["lambda_cons"] == 0 < full["lambda_distill"] and full["beta_d"] > 0
 
 
 def test_a_failed_run_stops_the_report_with_its_logs_tail_and_the_rest_are_kept(tmp_path, monkeypatch, capsys):
