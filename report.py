@@ -100,6 +100,7 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
     print(f"report: {len(dirs) - len(todo)} of {len(dirs)} runs already done; running {len(todo)}, {jobs} at a time",
           flush=True)
     start, finished, stop = time.time(), [], threading.Event()    # stop: after Ctrl-C, start no more runs
+    done = threading.Lock()   # one run's count and progress line at a time: two threads printing at once mixed lines
 
     def one(item):
         if stop.is_set():
@@ -119,11 +120,12 @@ def run_experiments(out: str, seeds: list[int], budget: str, jobs: int = 2, init
             raise RuntimeError(f"run {name} seed {seed} failed (exit {rc}); {d}/log.txt ends:\n" + "\n".join(tail))
         json.dump({"cmd": cmd[2:], "base": base, "minutes": (time.time() - t0) / 60},
                   open(os.path.join(d, "report_cmd.json"), "w"))
-        finished.append(name)
-        so_far = (time.time() - start) / 60    # the ETA: the minutes so far per finished run, times the runs left
-        print(f"report: [{len(finished)}/{len(todo)}] {name} seed {seed} done in {(time.time() - t0) / 60:.1f} min "
-              f"({so_far:.1f} min so far, ETA {so_far / len(finished) * (len(todo) - len(finished)):.1f} min)",
-              flush=True)
+        with done:
+            finished.append(name)
+            so_far = (time.time() - start) / 60    # the ETA: the minutes so far per finished run, times the runs left
+            print(f"report: [{len(finished)}/{len(todo)}] {name} seed {seed} done in {(time.time() - t0) / 60:.1f} "
+                  f"min ({so_far:.1f} min so far, ETA {so_far / len(finished) * (len(todo) - len(finished)):.1f} min)",
+                  flush=True)
 
     with ThreadPoolExecutor(jobs) as pool:
         futures = [pool.submit(one, item) for item in todo]

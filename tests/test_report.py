@@ -136,7 +136,8 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
         log.write_text("".join(json.dumps({**r, "avg": 0.999} if r.get("eval") else r) + "\n" for r in recs))
     again = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
     assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
-    row = next(line for line in (out / "report.md").read_text().splitlines() if line.startswith(f"| {report.ON_FULL} |"))
+    md = (out / "report.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith(f"| {report.ON_FULL} |"))
     assert row.split(" | ")[3:5] == ["0.999 ± 0.000"] * 2, row
 
 
