@@ -206,11 +206,12 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     for v, runs in variants.items():
         lines.append(f"| {v} | " + " | ".join(fmt(ev[i][k] for ev in runs) for k, i in (
             ("task", 0), ("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1))) + " |")
-    # Fig. 4 right: the task and the average score vs beta_d
+    # Fig. 4 right: the task and the average score vs beta_d, at a curve's end and peak (the figure and the table)
+    at = {"end": lambda ev, k: ev[-1][k], "peak": lambda ev, k: max(e[k] for e in ev)}
     plt, fig, axes = figure(2, 5)
     for ax, key in zip(axes, FIG4):
-        for what, pick in (("end", lambda ev: ev[-1][key]), ("peak", lambda ev: max(e[key] for e in ev))):
-            ms = [mean_sd(pick(r["evals"]) for r in curves[name]) for name in BETAS]
+        for what, pick in at.items():
+            ms = [mean_sd(pick(r["evals"], key) for r in curves[name]) for name in BETAS]
             ax.errorbar(list(BETAS.values()), [m for m, _ in ms], [sd for _, sd in ms], marker="o", capsize=3,
                         label=f"@{what}")
         ax.set_xscale("symlog", linthresh=0.01)
@@ -222,11 +223,8 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "![](fig4_right.png)", "",
               "| β_d | task peak | task @end | avg peak | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for name, b in BETAS.items():
-        lines.append(f"| {b:g} | {fmt(max(e['task'] for e in r['evals']) for r in curves[name])} | "
-                     f"{fmt(r['evals'][-1]['task'] for r in curves[name])} | "
-                     f"{fmt(max(e['avg'] for e in r['evals']) for r in curves[name])} | "
-                     f"{fmt(r['evals'][-1]['avg'] for r in curves[name])} | "
-                     f"{fmt(r['evals'][-1]['consistency'] for r in curves[name])} |")
+        lines.append(f"| {b:g} | " + " | ".join(fmt(at[w](r["evals"], k) for r in curves[name]) for k, w in (
+            ("task", "peak"), ("task", "end"), ("avg", "peak"), ("avg", "end"), ("consistency", "end"))) + " |")
     # Fig. 5: the four training settings
     demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]
     plt, fig, axes = figure(3, 4.5)
