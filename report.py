@@ -55,6 +55,8 @@ EXPERIMENTS = {
 BETAS = {"beta_0": 0.0, "beta_0.01": 0.01, "beta_0.1": 0.1, "wmsd": 1.0}
 ON_FULL = "on + r_distill (Eq. 12, no judges)"   # Fig. 4 left's full on-policy objective: the on_full runs
 FIG4 = {"task": "the task score", "avg": "the average of task, agent, consistency (the paper's)"}   # Fig. 4's panels
+# a point of an eval curve (the list of a run's eval records) for key k, as the tables and Fig. 4 right read it
+AT = {"0": lambda ev, k: ev[0][k], "end": lambda ev, k: ev[-1][k], "peak": lambda ev, k: max(e[k] for e in ev)}
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
@@ -148,6 +150,11 @@ def table4_cell(results: list[dict], key: str) -> str:
     return f"{score:.3f} ({s}/{valid}; {100 * (n - valid) / max(n, 1):.1f}%)"
 
 
+def curve_cells(runs: list, points) -> str:
+    """A table row's cells: for each (key, point of AT) in points, mean ± sd over runs (an eval curve per seed)."""
+    return " | ".join(fmt(AT[at](ev, k) for ev in runs) for k, at in points)
+
+
 def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
     """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
     the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
@@ -204,14 +211,13 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "`avg` is the paper's metric in Fig. 4, the mean of the task, agent and consistency scores.", "",
               "| variant | task @0 | task @end | avg @0 | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for v, runs in variants.items():
-        lines.append(f"| {v} | " + " | ".join(fmt(ev[i][k] for ev in runs) for k, i in (
-            ("task", 0), ("task", -1), ("avg", 0), ("avg", -1), ("consistency", -1))) + " |")
+        lines.append(f"| {v} | " + curve_cells(runs, (("task", "0"), ("task", "end"), ("avg", "0"), ("avg", "end"),
+                                                ("consistency", "end"))) + " |")
     # Fig. 4 right: the task and the average score vs beta_d, at a curve's end and peak (the figure and the table)
-    at = {"end": lambda ev, k: ev[-1][k], "peak": lambda ev, k: max(e[k] for e in ev)}
     plt, fig, axes = figure(2, 5)
     for ax, key in zip(axes, FIG4):
-        for what, pick in at.items():
-            ms = [mean_sd(pick(r["evals"], key) for r in curves[name]) for name in BETAS]
+        for what in ("end", "peak"):
+            ms = [mean_sd(AT[what](r["evals"], key) for r in curves[name]) for name in BETAS]
             ax.errorbar(list(BETAS.values()), [m for m, _ in ms], [sd for _, sd in ms], marker="o", capsize=3,
                         label=f"@{what}")
         ax.set_xscale("symlog", linthresh=0.01)
@@ -223,7 +229,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               "![](fig4_right.png)", "",
               "| β_d | task peak | task @end | avg peak | avg @end | consistency @end |", "|---|---|---|---|---|---|"]
     for name, b in BETAS.items():
-        lines.append(f"| {b:g} | " + " | ".join(fmt(at[w](r["evals"], k) for r in curves[name]) for k, w in (
+        lines.append(f"| {b:g} | " + curve_cells([r["evals"] for r in curves[name]], (
             ("task", "peak"), ("task", "end"), ("avg", "peak"), ("avg", "end"), ("consistency", "end"))) + " |")
     # Fig. 5: the four training settings
     demo = [r["fixed"][DEMO_ROW] for r in curves["wmsd"]]
@@ -239,10 +245,8 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     lines += ["", "## Fig. 5: training settings", "", "![](fig5.png)", "",
               "| setting | task @0 | task peak | task @end | agent @end | consistency @end |", "|---|---|---|---|---|---|"]
     for name, label in FIG5.items():
-        rs = curves[name]
-        lines.append(f"| {label} | {fmt(r['evals'][0]['task'] for r in rs)} | "
-                     f"{fmt(max(e['task'] for e in r['evals']) for r in rs)} | "
-                     + " | ".join(fmt(r["evals"][-1][k] for r in rs) for k in ("task", "agent", "consistency")) + " |")
+        lines.append(f"| {label} | " + curve_cells([r["evals"] for r in curves[name]], (
+            ("task", "0"), ("task", "peak"), ("task", "end"), ("agent", "end"), ("consistency", "end"))) + " |")
     lines.append(f"| Demonstrator (toy VLM's D) | | | {fmt(d['task'] for d in demo)} | {fmt(d['agent'] for d in demo)} | "
                  f"{fmt(d['consistency'] for d in demo)} |")
     # Fig. 7: per task family and per agent type
