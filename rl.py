@@ -351,8 +351,9 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
 def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     """Sec. 3's third approach to L_RL, DiffusionNFT [71] (online RL with the forward process). Each final sample
-    gets an optimality probability r = 1/2 + 1/2 clip(A / A_max, -1, 1) (A_max = 5, the advantage clip). Around the
-    old velocity v_old = sg(v_theta_old) two implicit policies are formed,
+    gets an optimality probability r = 1/2 + 1/2 clip(A / A_max, -1, 1). A_max = 5 is the default advantage clip
+    (`advantages`, train.py --adv_clip), the bound the public trainer Flow-Factory divides by; here it stays 5 whatever
+    --adv_clip is. Around the old velocity v_old = sg(v_theta_old) two implicit policies are formed,
 
         v+ = (1 - beta) v_old + beta v_theta,        v- = (1 + beta) v_old - beta v_theta,
 
