@@ -8,6 +8,7 @@ train.py's); run it after changing a formula or its tests:
     python tests/mutants.py                 # every change below
     python tests/mutants.py --only rl.py    # the changes to some files (comma-separated)
     python tests/mutants.py --only "train.py (pretrain)"    # or to one part of a file, as MUTANTS names it
+    python tests/mutants.py --only "train.py (step)"        # (train.py's step alone: --only train.py takes every part)
     python tests/mutants.py --what "Eq. 9"  # the changes whose description says this
 
 Each change is (old line(s), new line(s), what it breaks): a sign, a factor, an axis, a threshold, a flag that does
@@ -527,7 +528,7 @@ MUTANTS = {
         ('    "on_full": ("rl", ["--lambda_task", "0", "--lambda_cons", "0"]),',
          '    "on_full": ("rl", ["--lambda_task", "0"]),', "Fig. 4 left's full objective keeping r_cons"),
     ]),
-    "train.py": (["tests/test_train.py"], [
+    "train.py (step)": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',
          "a damaged --eval_cache file ending the run in a traceback"),
         ("        return rl.final_loss(l_rl, l_anchor, args.beta_d), info",
