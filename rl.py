@@ -151,6 +151,10 @@ class RLConfig:
     """AWM ratio: exp_first (one per (sample, time), Tab. 3) | sum_first (one per sample)"""
     nft_beta: float = 1.0
     """DiffusionNFT's step beta between the old velocity and the implicit policies"""
+    adv_max: float = 5.0
+    """DiffusionNFT's A_max, the advantage at which its optimality probability reaches 0 or 1. train.py sets it to
+    its advantage clip (--adv_clip; 5 when that is 0, no clip), as the public trainer Flow-Factory divides by its
+    clip bound, so the largest advantage the clip lets through counts as certain"""
 
 
 def _reference(model, x, t, c):
@@ -351,9 +355,9 @@ def awm(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
 
 def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     """Sec. 3's third approach to L_RL, DiffusionNFT [71] (online RL with the forward process). Each final sample
-    gets an optimality probability r = 1/2 + 1/2 clip(A / A_max, -1, 1). A_max = 5 is the default advantage clip
-    (`advantages`, train.py --adv_clip), the bound the public trainer Flow-Factory divides by; here it stays 5 whatever
-    --adv_clip is. Around the old velocity v_old = sg(v_theta_old) two implicit policies are formed,
+    gets an optimality probability r = 1/2 + 1/2 clip(A / A_max, -1, 1), A_max = cfg.adv_max (the advantage clip,
+    `advantages`, train.py --adv_clip). Around the old velocity v_old = sg(v_theta_old) two implicit policies are
+    formed,
 
         v+ = (1 - beta) v_old + beta v_theta,        v- = (1 + beta) v_old - beta v_theta,
 
@@ -370,7 +374,7 @@ def nft(model, ro: Rollouts, A: torch.Tensor, cfg: RLConfig, generator=None):
     if "nft_old" not in ro.draws:
         ro.draws["nft_old"] = v.detach()
     v_old, b = ro.draws["nft_old"], cfg.nft_beta
-    r = (0.5 + 0.5 * (A / 5.0).clamp(-1, 1)).repeat(n_t)
+    r = (0.5 + 0.5 * (A / cfg.adv_max).clamp(-1, 1)).repeat(n_t)
     pos, neg = (1 - b) * v_old + b * v, (1 + b) * v_old - b * v
     loss = (r * _sq(pos - u) + (1 - r) * _sq(neg - u)).mean()
     return loss, {"fm_err": _sq(v.detach() - u).mean().item()}

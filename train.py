@@ -271,7 +271,7 @@ class Args:
     adv_agg: str = "gdpo"
     """advantage aggregation over the rewards: gdpo (Tab. 3) | sum"""
     adv_clip: float = 5.0
-    """advantages are clipped to [-adv_clip, adv_clip] (0: not clipped)"""
+    """advantages are clipped to [-adv_clip, adv_clip] (0: not clipped); also nft's A_max (5 when 0)"""
     inner_epochs: int = 1
     """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
     executor_ema: float = 0.0
@@ -979,7 +979,7 @@ TRAINERS = tuple(rl.OBJECTIVES)
 def rl_config(args: Args) -> rl.RLConfig:
     return rl.RLConfig(clip_range=args.clip_range, kl_beta=args.kl_beta, timesteps=args.awm_timesteps,
                        times=args.awm_times, weighting=args.awm_weighting, ghuber_power=args.ghuber_power,
-                       ratio=args.awm_ratio, nft_beta=args.nft_beta)
+                       ratio=args.awm_ratio, nft_beta=args.nft_beta, adv_max=args.adv_clip or 5.0)
 
 
 JUDGE = None

@@ -272,6 +272,27 @@ def test_awm_ratio_per_time_or_per_sample_as_stated():
     assert abs(losses["exp_first"] - losses["sum_first"]) > 1e-5
 
 
+def test_nft_optimality_scales_with_the_advantage_up_to_a_max():
+    """DiffusionNFT's r = 1/2 + 1/2 clip(A / A_max, -1, 1), A_max = cfg.adv_max. At the first inner step
+    v+ = v- = v_old, so the loss's gradient is (2r - 1) 2 beta (v - u) dv/dtheta: proportional to clip(A / A_max),
+    full at A = A_max, no more beyond it, reversed for -A_max."""
+    torch.manual_seed(0)
+    model = Tiny()
+    models.add_lora(model, 2, 4.0)
+    params = models.lora_parameters(model)
+
+    def grad(a, a_max):
+        ro = _tiny_rollouts(model, sde=False)
+        loss, _ = rl.nft(model, ro, torch.full((8,), float(a)), rl.RLConfig(adv_max=a_max),
+                         torch.Generator().manual_seed(0))
+        return torch.cat([g.flatten() for g in torch.autograd.grad(loss, params)])
+
+    full = grad(5, 5)
+    assert full.abs().max() > 1e-4
+    for a, a_max, scale in ((2.5, 5, 0.5), (10, 5, 1), (-5, 5, -1), (2, 2, 1), (1, 2, 0.5), (0, 2, 0)):
+        assert torch.allclose(grad(a, a_max), scale * full, atol=1e-7), (a, a_max)
+
+
 def test_renoising_times_stratified_uniform_or_on_the_samplers_grid():
     """_renoise: n_t strata per sample; "uniform" puts stratum j's time in [0.98 j/n_t, 0.98 (j+1)/n_t), "grid" on
     the sampler's step times that fall in stratum j of the S steps; the path and target are Eq. 2's either way."""

@@ -650,15 +650,24 @@ def test_read_by_names_the_stages_whose_code_reads_each_flag():
 
 def test_trainer_reads_names_the_trainers_whose_objective_reads_each_flag():
     """train.TRAINER_READS likewise, against rl.py: the flags rl_config passes as RLConfig fields, and the fields
-    each trainer's objective reads (cfg.NAME)."""
+    each trainer's objective reads (cfg.NAME). A flag the step itself reads whatever the trainer (--adv_clip, the
+    advantages' clip, which nft's A_max also reads) is every trainer's."""
     call = next(n for n in ast.walk(ast.parse(open(os.path.join(ROOT, "train.py")).read()))
                 if isinstance(n, ast.Call) and getattr(n.func, "attr", None) == "RLConfig")
-    flag_of = {kw.arg: kw.value.attr for kw in call.keywords}           # RLConfig field -> train.py flag
+    flag_of = {kw.arg: next(n.attr for n in ast.walk(kw.value) if isinstance(n, ast.Attribute))
+               for kw in call.keywords}                                 # RLConfig field -> train.py flag
     assert set(flag_of) == {f.name for f in dataclasses.fields(train.rl.RLConfig)}
     read = {name: _reads("rl.py", "cfg", fn.__name__) for name, fn in train.rl.OBJECTIVES.items()}
+    every = _reads("train.py", "args", "rl_step")
     for field, flag in flag_of.items():
         trainers = train.rl.OBJECTIVES
-        assert set(train.TRAINER_READS.get(flag, trainers)) == {t for t in trainers if field in read[t]}, flag
+        objective = {t for t in trainers if field in read[t]}
+        assert set(train.TRAINER_READS.get(flag, trainers)) == (set(trainers) if flag in every else objective), flag
+
+
+def test_nfts_a_max_is_the_advantage_clip_or_5_without_one():
+    a_max = lambda *argv: train.rl_config(train.parse_args(["--toy", "--trainer", "nft", *argv])).adv_max  # noqa: E731
+    assert (a_max(), a_max("--adv_clip", "2"), a_max("--adv_clip", "0")) == (5, 2, 5)
 
 
 @pytest.mark.parametrize("flag, wrong, right, msg", [
