@@ -543,6 +543,23 @@ def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> 
                       sprites=CROWDED_SPRITES if crowded else SPRITES)
 
 
+TASK_TYPES = ("move to", "stop level with", *(f"go to the {e} edge" for e in EDGES), "centre")
+
+
+def composition(pairs: list[Pair]) -> dict[str, dict[str, int]]:
+    """The toy's Fig. 3 (Sec. 4.1.2, "WorldTasks prompt composition"), counted: how many of `pairs` address each
+    agent category -- a sprite by its shape, or the camera (FIRST_PERSON) -- and how many ask each task type,
+    TASK_TYPES, the edge tasks by the edge T names. Every category is listed, with 0 where none occurs:
+    {"agent": {category: n}, "task": {type: n}}, each summing to len(pairs)."""
+    agent = {**{shape: 0 for shape in SHAPES}, FIRST_PERSON: 0}
+    task = dict.fromkeys(TASK_TYPES, 0)
+    for q in pairs:
+        agent[q.task.agent if q.task.agent == FIRST_PERSON else q.task.agent.split()[-1]] += 1
+        task[{"move_to": "move to", "level_with": "stop level with", "centre": "centre"}.get(
+            q.task.kind, f"go to the {q.task.target} edge")] += 1
+    return {"agent": agent, "task": task}
+
+
 def random_plan(scene: Scene, rng: np.random.Generator) -> Plan:
     """A pretraining motion: a still video (10%), a camera pan (25%) or one sprite moving (65%), always valid."""
     u = rng.random()
@@ -871,16 +888,27 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
 
 
 def main(argv=None) -> None:
-    """`python world.py`: the first bench pairs as the simulator solves them, and their T and D."""
+    """`python world.py`: the first bench pairs as the simulator solves them, and their T and D; or, with
+    --composition, the toy's Fig. 3."""
     import argparse
 
     import bench        # bench imports this module: here, not at the top
     p = argparse.ArgumentParser(description="Draw the first N pairs of the 200-pair bench as the simulator solves them "
                                 "(the error-free plan; one pair a row, frames 0..5 left to right) into a PNG, and "
-                                "print each pair's family, T and D.")
-    p.add_argument("--n", type=int, default=6, help="bench pairs to draw, 1..200")
-    p.add_argument("--out", default="world_examples.png", help="the PNG to write")
+                                "print each pair's family, T and D. With --composition, draw the toy's Fig. 3 "
+                                "instead: the agents and task types of the training split and the two benches.")
+    p.add_argument("--n", type=int, default=None, help="bench pairs to draw, 1..200 (default 6)")
+    p.add_argument("--out", default=None, help="the PNG to write (default world_examples.png)")
+    p.add_argument("--composition", default=None, metavar="PNG",
+                   help="draw Fig. 3's prompt composition into PNG and print its counts (not with --n or --out)")
     a = p.parse_args(argv)
+    if a.composition:
+        if a.n is not None or a.out is not None:
+            p.error("--n and --out choose the pairs drawn as videos: not with --composition")
+        if bad := bench.output_path_error(a.composition, "--composition", suffix=".png"):
+            p.error(bad)
+        return draw_composition(a.composition)
+    a.n, a.out = 6 if a.n is None else a.n, a.out or "world_examples.png"
     if not 1 <= a.n <= 200:
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
     if bad := bench.output_path_error(a.out, "--out", suffix=".png"):
@@ -891,6 +919,35 @@ def main(argv=None) -> None:
     for q in pairs:
         print(f"{q.task.family:12s} T = {q.task.text!r:45s} D = {q.d_oracle!r}")
     print(f"wrote {a.out}")
+
+
+def draw_composition(path: str) -> None:
+    """Fig. 3 on the toy: two panels, (a) the addressed agent's category and (b) the task type (composition), each
+    as the share of a split, for the training split of `train.py --toy` at seed 0, the bench and the crowded bench;
+    the counts are printed."""
+    import bench
+    import train        # train.toy_pairs: the split a run trains on (its size and seed are train.py's)
+    splits = {"training split (train.py --toy, seed 0)": train.toy_pairs(train.parse_args(["--toy"])),
+              "bench": bench_pairs(0.0), "crowded bench": crowded_pairs(0.0)}
+    counts = {name: composition(pairs) for name, pairs in splits.items()}
+    plt, fig, axes = bench.figure(2, width=5.6)
+    for ax, key, title in zip(axes, ("agent", "task"), ("(a) addressed agent", "(b) task type")):
+        cats = list(next(iter(counts.values()))[key])
+        for j, (name, c) in enumerate(counts.items()):
+            n = len(splits[name])
+            ax.barh(np.arange(len(cats)) + (j - 1) * 0.27, [100 * c[key][k] / n for k in cats], height=0.27,
+                    label=f"{name}, {n} pairs")
+        ax.set_yticks(np.arange(len(cats)), cats)
+        ax.invert_yaxis()
+        ax.set_xlabel("share of the split's pairs (%)")
+        ax.set_title(title)
+    axes[1].legend(fontsize=7, loc="center right")     # beside the edge rows, the shortest bars
+    bench.save_figure(plt, fig, path)
+    for key in ("agent", "task"):
+        print(f"{key:24s}" + "".join(f"{name.split(' (')[0]:>16s}" for name in counts))
+        for k in next(iter(counts.values()))[key]:
+            print(f"  {k:22s}" + "".join(f"{c[key][k]:>16d}" for c in counts.values()))
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

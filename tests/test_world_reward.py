@@ -541,3 +541,43 @@ def test_world_script_draws_the_pairs_it_prints(tmp_path, capsys):
     for argv, msg in ((["--n", "0"], "--n must lie in 1..200"), (["--out", tmp_path], "is a directory, not a file"),
                       (["--out", tmp_path / "w.gif"], "must end in .png")):
         assert msg in exit_2(world.main, argv, capsys), argv
+
+
+def test_composition_counts_each_pairs_agent_and_task_type_once():
+    """Fig. 3 on the toy: every pair counted once in each panel, a sprite agent by its shape, an edge task by its edge;
+    checked against T's own words on the bench, and on hand-made pairs."""
+    bench = world.bench_pairs(0.0)
+    c = world.composition(bench)
+    assert sum(c["agent"].values()) == sum(c["task"].values()) == 200
+    texts = [q.task.text for q in bench]
+    assert c["task"]["move to"] == sum(": move to the " in x for x in texts)
+    assert c["task"]["stop level with"] == sum(": stop level with the " in x for x in texts)
+    for edge in world.EDGES:
+        assert c["task"][f"go to the {edge} edge"] == sum(x.endswith(f"go to the {edge} edge") for x in texts), edge
+    assert c["agent"][world.FIRST_PERSON] == c["task"]["centre"] == sum(q.task.family == "perception" for q in bench)
+    for shape in world.SHAPES:
+        assert c["agent"][shape] == sum(x.split("]")[0].endswith(" " + shape) for x in texts), shape
+    made = [world.Pair(None, task, "", "", None, None) for task in (
+        world.Task("navigation", "move_to", "red cross", "blue circle"),
+        world.Task("positioning", "edge", "green triangle", "bottom"),
+        world.Task("positioning", "level_with", "red cross", "green triangle"),
+        world.Task("perception", "centre", world.FIRST_PERSON, "red cross"))]
+    c = world.composition(made)
+    assert {k: v for k, v in c["agent"].items() if v} == {"cross": 2, "triangle": 1, world.FIRST_PERSON: 1}
+    assert {k: v for k, v in c["task"].items() if v} == {"move to": 1, "go to the bottom edge": 1,
+                                                          "stop level with": 1, "centre": 1}
+
+
+def test_world_script_draws_the_composition_it_prints(tmp_path, capsys):
+    """`python world.py --composition PNG`: the figure, and the counts of the three splits printed; --n and --out,
+    which choose videos, are refused beside it."""
+    from PIL import Image
+    world.main(["--composition", str(tmp_path / "sub" / "fig3.png")])
+    out = capsys.readouterr().out
+    assert Image.open(tmp_path / "sub" / "fig3.png").size[0] > 400
+    bench = world.composition(world.bench_pairs(0.0))
+    row = next(line for line in out.splitlines() if line.strip().startswith("go to the bottom edge"))
+    assert int(row.split()[-2]) == bench["task"]["go to the bottom edge"], row        # the bench's column
+    for argv, msg in ((["--composition", str(tmp_path / "c.png"), "--n", "2"], "not with --composition"),
+                      (["--composition", str(tmp_path / "c.gif")], "must end in .png")):
+        assert msg in exit_2(world.main, argv, capsys), argv
