@@ -22,7 +22,8 @@ This is the laptop-sized stand-in for the paper's data (Sec. 4.1.1, App. A.6) an
 Simplifications: integer pixel motion, one mover per video, no pushing, no occlusion (plans never overlap sprites).
 
 Run `python world.py` to write a PNG strip of a few bench pairs (frame 0 .. 5 of the oracle solution); `--help`
-says how many and where.
+says how many and where. `python world.py --composition PNG` draws the toy's Fig. 3 instead: which agents and kinds
+of task the training split and the benches hold (`composition`).
 """
 from __future__ import annotations
 
