@@ -757,6 +757,24 @@ def task_family(task: str) -> str:
     return next((f for f, ws in FAMILY_WORDS.items() if any(w in instr for w in ws)), "other")
 
 
+def dataset_composition(splits: dict[str, list[dict]], top: int = 8) -> dict[str, dict[str, dict[str, int]]]:
+    """Fig. 3 (Sec. 4.1.2, "WorldTasks prompt composition") for WorldTasks JSONL files (load_dataset's rows), split by
+    split: the agent T addresses, as written between its brackets (lower-cased), the `top` commonest over all splits
+    by name and the rest as "other"; and the task family by task_family's keywords. {split: {"agent": {category: n},
+    "task": {family: n}}}, every category in every split, each panel summing to the split's rows."""
+    agents = [[split_task(r["task"])[0].strip().lower() for r in rows] for rows in splits.values()]
+    names = sorted({a for a_s in agents for a in a_s}, key=lambda a: (-sum(x.count(a) for x in agents), a))
+    kept = names[:top] + (["other"] if len(names) > top else [])
+    out = {}
+    for (split, rows), a_s in zip(splits.items(), agents):
+        agent, task = dict.fromkeys(kept, 0), dict.fromkeys((*FAMILY_WORDS, "other"), 0)
+        for r, a in zip(rows, a_s):
+            agent[a if a in agent and a != "other" else "other"] += 1
+            task[task_family(r["task"])] += 1
+        out[split] = {"agent": agent, "task": task}
+    return out
+
+
 def load_dataset(path: str) -> list[dict]:
     """A WorldTasks JSONL file: one {"image", "task", "description", "agent", "family"} per line (image a path,
     relative to the file). Raises ValueError "path line N: ..." on the first bad line, naming the problem."""
@@ -902,13 +920,28 @@ def main(argv=None) -> None:
     p.add_argument("--out", default=None, help="the PNG to write (default world_examples.png)")
     p.add_argument("--composition", default=None, metavar="PNG",
                    help="draw Fig. 3's prompt composition into PNG and print its counts (not with --n or --out)")
+    p.add_argument("--dataset", action="append", default=None, metavar="JSONL",
+                   help="with --composition: a WorldTasks JSONL file's composition instead of the toy's, one split "
+                        "per file (repeat the flag: the training split, then the bench)")
     a = p.parse_args(argv)
+    if a.dataset and not a.composition:
+        p.error("--dataset is read with --composition only")
     if a.composition:
         if a.n is not None or a.out is not None:
             p.error("--n and --out choose the pairs drawn as videos: not with --composition")
         if bad := bench.output_path_error(a.composition, "--composition", suffix=".png"):
             p.error(bad)
-        return draw_composition(a.composition)
+        if not a.dataset:
+            import train    # train.toy_pairs: the split a run trains on (its size and seed are train.py's)
+            splits = {"training split (train.py --toy, seed 0)": train.toy_pairs(train.parse_args(["--toy"])),
+                      "bench": bench_pairs(0.0), "crowded bench": crowded_pairs(0.0)}
+            return draw_composition(a.composition, {k: composition(v) for k, v in splits.items()},
+                                    {k: len(v) for k, v in splits.items()})
+        try:
+            rows = {path: load_dataset(path) for path in a.dataset}
+        except ValueError as e:
+            p.error(str(e))
+        return draw_composition(a.composition, dataset_composition(rows), {k: len(v) for k, v in rows.items()})
     a.n, a.out = 6 if a.n is None else a.n, a.out or "world_examples.png"
     if not 1 <= a.n <= 200:
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
@@ -922,32 +955,28 @@ def main(argv=None) -> None:
     print(f"wrote {a.out}")
 
 
-def draw_composition(path: str) -> None:
-    """Fig. 3 on the toy: two panels, (a) the addressed agent's category and (b) the task type (composition), each
-    as the share of a split, for the training split of `train.py --toy` at seed 0, the bench and the crowded bench;
-    the counts are printed."""
+def draw_composition(path: str, counts: dict[str, dict[str, dict[str, int]]], sizes: dict[str, int]) -> None:
+    """Fig. 3: two panels, (a) the addressed agent's category and (b) the task type, each category's share of each
+    split (counts as composition or dataset_composition return them; sizes: each split's pairs), into the PNG at
+    `path`; the counts are printed."""
     import bench
-    import train        # train.toy_pairs: the split a run trains on (its size and seed are train.py's)
-    splits = {"training split (train.py --toy, seed 0)": train.toy_pairs(train.parse_args(["--toy"])),
-              "bench": bench_pairs(0.0), "crowded bench": crowded_pairs(0.0)}
-    counts = {name: composition(pairs) for name, pairs in splits.items()}
     plt, fig, axes = bench.figure(2, width=5.6)
+    w = 0.8 / len(counts)
     for ax, key, title in zip(axes, ("agent", "task"), ("(a) addressed agent", "(b) task type")):
         cats = list(next(iter(counts.values()))[key])
         for j, (name, c) in enumerate(counts.items()):
-            n = len(splits[name])
-            ax.barh(np.arange(len(cats)) + (j - 1) * 0.27, [100 * c[key][k] / n for k in cats], height=0.27,
-                    label=f"{name}, {n} pairs")
+            ax.barh(np.arange(len(cats)) + (j - (len(counts) - 1) / 2) * w,
+                    [100 * c[key][k] / sizes[name] for k in cats], height=w, label=f"{name}, {sizes[name]} pairs")
         ax.set_yticks(np.arange(len(cats)), cats)
         ax.invert_yaxis()
         ax.set_xlabel("share of the split's pairs (%)")
         ax.set_title(title)
-    axes[1].legend(fontsize=7, loc="center right")     # beside the edge rows, the shortest bars
+    axes[1].legend(fontsize=7)
     bench.save_figure(plt, fig, path)
     for key in ("agent", "task"):
-        print(f"{key:24s}" + "".join(f"{name.split(' (')[0]:>16s}" for name in counts))
+        print(f"{key:24s}" + "".join(f"{name.split(' (')[0][-15:]:>16s}" for name in counts))
         for k in next(iter(counts.values()))[key]:
-            print(f"  {k:22s}" + "".join(f"{c[key][k]:>16d}" for c in counts.values()))
+            print(f"  {k[:22]:22s}" + "".join(f"{c[key][k]:>16d}" for c in counts.values()))
     print(f"wrote {path}")
 
 

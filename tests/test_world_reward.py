@@ -581,3 +581,34 @@ def test_world_script_draws_the_composition_it_prints(tmp_path, capsys):
     for argv, msg in ((["--composition", str(tmp_path / "c.png"), "--n", "2"], "not with --composition"),
                       (["--composition", str(tmp_path / "c.gif")], "must end in .png")):
         assert msg in exit_2(world.main, argv, capsys), argv
+
+
+def test_world_script_draws_a_datasets_composition(tmp_path, capsys):
+    """Fig. 3 for WorldTasks JSONL files (`--composition PNG --dataset A --dataset B`): the agents as T names them,
+    the commonest over both files kept and the rest "other", and the task families by task_family's keywords; a
+    --dataset without --composition, or a file that is not there, is one clear error."""
+    from PIL import Image
+    Image.fromarray(world.make_pairs(1, seed=0, error_rate=0.0)[0].frame0).save(tmp_path / "f.png")
+
+    def jsonl(name, tasks):
+        (tmp_path / name).write_text("".join(json.dumps({"image": "f.png", "task": t, "description": "d"}) + "\n"
+                                             for t in tasks))
+        return str(tmp_path / name)
+
+    train = jsonl("train.jsonl", ["[person]: walk to the door", "[Person]: look at the dog",
+                                  "[robot arm]: stop next to the table", "[dog]: jump"])
+    bench = jsonl("bench.jsonl", ["[person]: turn left"])
+    c = world.dataset_composition({"train": world.load_dataset(train), "bench": world.load_dataset(bench)}, top=2)
+    assert c["train"]["agent"] == {"person": 2, "dog": 1, "other": 1}        # dog before robot arm: a tie, by name
+    assert c["bench"]["agent"] == {"person": 1, "dog": 0, "other": 0}
+    assert c["train"]["task"] == {"navigation": 1, "positioning": 1, "perception": 1, "other": 1}
+    assert c["bench"]["task"] == {"navigation": 0, "positioning": 0, "perception": 1, "other": 0}
+    world.main(["--composition", str(tmp_path / "c.png"), "--dataset", train, "--dataset", bench])
+    rows = [line.rsplit(None, 2) for line in capsys.readouterr().out.splitlines()[1:4]]      # the agent panel's
+    assert {name.strip(): counts for name, *counts in rows} == {"person": ["2", "1"], "robot arm": ["1", "0"],
+                                                                "dog": ["1", "0"]}
+    assert (tmp_path / "c.png").stat().st_size > 0
+    for argv, msg in ((["--dataset", train], "--dataset is read with --composition only"),
+                      (["--composition", str(tmp_path / "c.png"), "--dataset", str(tmp_path / "no.jsonl")],
+                       "does not exist")):
+        assert msg in exit_2(world.main, argv, capsys), argv
