@@ -27,6 +27,7 @@ of task the training split and the benches hold (`composition`).
 """
 from __future__ import annotations
 
+import collections
 import functools
 import re
 from dataclasses import dataclass, field, replace
@@ -763,13 +764,14 @@ def dataset_composition(splits: dict[str, list[dict]], top: int = 8) -> dict[str
     by name and the rest as "other"; and the task family by task_family's keywords. {split: {"agent": {category: n},
     "task": {family: n}}}, every category in every split, each panel summing to the split's rows."""
     agents = [[split_task(r["task"])[0].strip().lower() for r in rows] for rows in splits.values()]
-    names = sorted({a for a_s in agents for a in a_s}, key=lambda a: (-sum(x.count(a) for x in agents), a))
+    total = collections.Counter(a for a_s in agents for a in a_s)
+    names = sorted(total, key=lambda a: (-total[a], a))
     kept = names[:top] + (["other"] if len(names) > top else [])
     out = {}
     for (split, rows), a_s in zip(splits.items(), agents):
         agent, task = dict.fromkeys(kept, 0), dict.fromkeys((*FAMILY_WORDS, "other"), 0)
         for r, a in zip(rows, a_s):
-            agent[a if a in agent and a != "other" else "other"] += 1
+            agent[a if a in agent else "other"] += 1
             task[task_family(r["task"])] += 1
         out[split] = {"agent": agent, "task": task}
     return out

@@ -308,6 +308,8 @@ MUTANTS = {
         ('    agents = [[split_task(r["task"])[0].strip().lower() for r in rows] for rows in splits.values()]',
          '    agents = [[split_task(r["task"])[0].strip() for r in rows] for rows in splits.values()]',
          "a dataset's Fig. 3 telling [Person] from [person]"),
+        ('    names = sorted(total, key=lambda a: (-total[a], a))', '    names = sorted(total)',
+         "a dataset's Fig. 3 keeping the first agents by name, not the commonest"),
         ("    n = int(rng.integers(sprites[0], sprites[1] + 1))", "    n = int(rng.integers(2, 5))",
          "the crowded bench's scenes drawn with 2-4 sprites"),
         ("    return list(_fixed_pairs(n, CROWDED_SEED, float(error_rate), CROWDED_SPRITES))",

@@ -596,17 +596,17 @@ def test_world_script_draws_a_datasets_composition(tmp_path, capsys):
         return str(tmp_path / name)
 
     train = jsonl("train.jsonl", ["[person]: walk to the door", "[Person]: look at the dog",
-                                  "[robot arm]: stop next to the table", "[dog]: jump"])
+                                  "[robot arm]: stop next to the table", "[dog]: jump", "[cat]: look at the door"])
     bench = jsonl("bench.jsonl", ["[person]: turn left"])
     c = world.dataset_composition({"train": world.load_dataset(train), "bench": world.load_dataset(bench)}, top=2)
-    assert c["train"]["agent"] == {"person": 2, "dog": 1, "other": 1}        # dog before robot arm: a tie, by name
-    assert c["bench"]["agent"] == {"person": 1, "dog": 0, "other": 0}
-    assert c["train"]["task"] == {"navigation": 1, "positioning": 1, "perception": 1, "other": 1}
+    assert c["train"]["agent"] == {"person": 2, "cat": 1, "other": 2}    # the commonest; cat: the first of a tie
+    assert c["bench"]["agent"] == {"person": 1, "cat": 0, "other": 0}
+    assert c["train"]["task"] == {"navigation": 1, "positioning": 1, "perception": 2, "other": 1}
     assert c["bench"]["task"] == {"navigation": 0, "positioning": 0, "perception": 1, "other": 0}
     world.main(["--composition", str(tmp_path / "c.png"), "--dataset", train, "--dataset", bench])
-    rows = [line.rsplit(None, 2) for line in capsys.readouterr().out.splitlines()[1:4]]      # the agent panel's
+    rows = [line.rsplit(None, 2) for line in capsys.readouterr().out.splitlines()[1:5]]      # the agent panel's
     assert {name.strip(): counts for name, *counts in rows} == {"person": ["2", "1"], "robot arm": ["1", "0"],
-                                                                "dog": ["1", "0"]}
+                                                                "dog": ["1", "0"], "cat": ["1", "0"]}
     assert (tmp_path / "c.png").stat().st_size > 0
     for argv, msg in ((["--dataset", train], "--dataset is read with --composition only"),
                       (["--composition", str(tmp_path / "c.png"), "--dataset", str(tmp_path / "no.jsonl")],
