@@ -937,13 +937,12 @@ def main(argv=None) -> None:
             import train    # train.toy_pairs: the split a run trains on (its size and seed are train.py's)
             splits = {"training split (train.py --toy, seed 0)": train.toy_pairs(train.parse_args(["--toy"])),
                       "bench": bench_pairs(0.0), "crowded bench": crowded_pairs(0.0)}
-            return draw_composition(a.composition, {k: composition(v) for k, v in splits.items()},
-                                    {k: len(v) for k, v in splits.items()})
+            return draw_composition(a.composition, {k: composition(v) for k, v in splits.items()})
         try:
             rows = {path: load_dataset(path) for path in a.dataset}
         except ValueError as e:
             p.error(str(e))
-        return draw_composition(a.composition, dataset_composition(rows), {k: len(v) for k, v in rows.items()})
+        return draw_composition(a.composition, dataset_composition(rows))
     a.n, a.out = 6 if a.n is None else a.n, a.out or "world_examples.png"
     if not 1 <= a.n <= 200:
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
@@ -957,11 +956,12 @@ def main(argv=None) -> None:
     print(f"wrote {a.out}")
 
 
-def draw_composition(path: str, counts: dict[str, dict[str, dict[str, int]]], sizes: dict[str, int]) -> None:
+def draw_composition(path: str, counts: dict[str, dict[str, dict[str, int]]]) -> None:
     """Fig. 3: two panels, (a) the addressed agent's category and (b) the task type, each category's share of each
-    split (counts as composition or dataset_composition return them; sizes: each split's pairs), into the PNG at
-    `path`; the counts are printed."""
+    split (counts as composition or dataset_composition return them: each panel sums to the split's pairs), into the
+    PNG at `path`; the counts are printed."""
     import bench
+    sizes = {name: sum(c["agent"].values()) for name, c in counts.items()}
     plt, fig, axes = bench.figure(2, width=5.6)
     w = 0.8 / len(counts)
     for ax, key, title in zip(axes, ("agent", "task"), ("(a) addressed agent", "(b) task type")):
