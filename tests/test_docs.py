@@ -1,5 +1,5 @@
-"""The README and docs/: every relative link and anchor resolves, every code name they quote is in the code, and CI
-runs the README's test command."""
+"""The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
+and CI runs the README's test command."""
 import os
 import re
 
@@ -144,3 +144,51 @@ def test_equation_index_names_functions_that_cite_them():
         covered |= want
     assert not bad, "\n".join(bad)
     assert set(range(1, 23)) <= covered, sorted(set(range(1, 23)) - covered)
+
+
+# flags the pages quote for other programs: pytest, pip, torchrun
+OUTSIDE_FLAGS = {"--durations", "--index-url", "--master_port", "--nproc_per_node"}
+
+
+def quoted_flags(text: str) -> set:
+    """The `--flag`s a page quotes in code: in fenced blocks and in `inline code`."""
+    fenced = re.findall(r"```[a-z]*\n(.*?)```", text, re.S)
+    inline = re.findall(r"`([^`\n]+)`", re.sub(r"```.*?```", "", text, flags=re.S))
+    return {f for code in fenced + inline for f in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", code)}
+
+
+def script_flags(main) -> set:
+    """The flags a script's parser takes, read from its --help: the option lines only, not its description."""
+    import contextlib
+    import io
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        try:
+            main(["--help"])
+        except SystemExit:
+            pass
+    lines = [re.split(r"\s{2,}", line.strip())[0] for line in out.getvalue().split("options:")[-1].splitlines()
+             if re.match(r"\s+(-\w, )?--", line)]
+    return {f for line in lines for f in re.findall(r"--[a-z][\w-]*", line)}
+
+
+def test_quoted_flags_reads_code_only_and_script_flags_reads_options_only():
+    assert quoted_flags("a --word in prose, `train.py --toy --no-eval_crowded`\n```bash\nbench.py --n 6\n```") == \
+        {"--toy", "--no-eval_crowded", "--n"}
+    import world
+    flags = script_flags(world.main)
+    assert {"--n", "--out", "--composition", "--dataset", "--help"} <= flags and "--bench" not in flags
+
+
+def test_every_flag_the_docs_quote_is_a_flag_of_ours():
+    """Every flag a command in the README or docs/ quotes is a flag of train.py, bench.py, report.py, world.py or
+    tests/mutants.py (or of pytest, pip, torchrun): a renamed or dropped flag leaves no stale command behind."""
+    import bench
+    import mutants
+    import report
+    import train
+    import world
+    ours = set().union(*(script_flags(m.main) for m in (train, bench, report, world, mutants)))
+    bad = [f"{page}: {f}" for page in PAGES
+           for f in sorted(quoted_flags(open(os.path.join(ROOT, page), encoding="utf-8").read()) - ours - OUTSIDE_FLAGS)]
+    assert len(ours) > 100 and not bad, "\n".join(bad)
