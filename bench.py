@@ -710,6 +710,20 @@ def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
     return [{"step": r["step"], "still": float(m)} for r, m in zip(steps[window - 1:], means)]
 
 
+def compare_items(items: list[str]) -> dict:
+    """--compare's LABEL=RUN_DIR[,RUN_DIR...] items -> {label: [run dirs]} (compare_runs' `runs`); an item without
+    a label or a dir, or a label given twice, is a ValueError that names it."""
+    runs = {}
+    for item in items:
+        label, eq, dirs = item.partition("=")
+        if not (eq and label and all(dirs.split(","))):
+            raise ValueError(f"{item!r} lacks a label, its '=' or a run dir")
+        if label in runs:
+            raise ValueError(f"the label {label!r} is given twice")
+        runs[label] = dirs.split(",")
+    return runs
+
+
 def compare_runs(runs: dict, path: str | None = None) -> str:
     """Curves of several runs (read_run: rl, or distill of one variant) on one figure -- task and consistency vs
     step, the Demonstrator as a dashed line (the paper's Fig. 5 layout), a third panel for the collapse to still
@@ -928,8 +942,7 @@ def main(argv=None):
             f"Demonstrator row), only: {chosen} would ignore it"))
     if a.compare:
         try:
-            runs = {label: dirs.split(",") for label, dirs in (item.split("=", 1) for item in a.compare)}
-            print(compare_runs(runs, a.png))
+            print(compare_runs(compare_items(a.compare), a.png))
         except (ValueError, FileNotFoundError) as e:
             print(f"error: --compare: {e} (give LABEL=RUN_DIR[,RUN_DIR...] pairs of rl runs or distill runs of one "
                   "--variant; several dirs are seeds of one setting)", file=sys.stderr)

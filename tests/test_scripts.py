@@ -303,6 +303,13 @@ def test_compare_runs_on_fake_runs(tmp_path):
     assert r.returncode == 0 and "0.125 ± 0.106" in r.stdout and (tmp_path / "cli.png").stat().st_size > 1000
     r = run("bench.py", "--compare", f"A={tmp_path / 'missing'}")
     assert r.returncode == 2 and "no rl.jsonl (nor a distill run's distill.jsonl)" in r.stderr
+    assert bench.compare_items(["A=x", "B=y,z"]) == {"A": ["x"], "B": ["y", "z"]}
+    for items, why in ((["runs"], "'runs' lacks a label"), (["=runs"], "'=runs' lacks"),
+                       (["A="], "'A=' lacks"), (["A=x,"], "'A=x,' lacks"), (["A=x", "A=y"], "'A' is given twice")):
+        with pytest.raises(ValueError, match=why):
+            bench.compare_items(items)
+    r = run("bench.py", "--compare", str(tmp_path / "a"))
+    assert r.returncode == 2 and "lacks a label, its '=' or a run dir" in r.stderr
     # a distill run of one variant (its curve, its Demonstrator once finished, its bench), and of two (refused)
     d = tmp_path / "sft"
     d.mkdir()
