@@ -445,6 +445,10 @@ def parse_args(argv=None) -> Args:
     bad = [v for v in args.variant.split(",") if v not in VARIANTS]
     if bad:
         p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
+    twice = sorted({v for v in args.variant.split(",") if args.variant.split(",").count(v) > 1})
+    if twice:
+        p.error(f"--variant: {', '.join(map(repr, twice))} given twice (a variant's run would overwrite its first "
+                "checkpoint and curve)")
     if args.out and args.stage == "distill" and "," in args.variant:
         p.error("--out names one checkpoint: with several --variant each Executor goes to "
                 "<run_dir>/executor_<variant>.pt")

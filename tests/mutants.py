@@ -841,6 +841,7 @@ MUTANTS = {
          'every reward weight zero accepted'),
         ('    if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):',
          '    if False:', 'SDE rollouts with --noise_level 0 accepted'),
+        ("    if twice:", "    if False:", "a --variant given twice accepted (its second run overwrites the first)"),
         ('    if not 0 <= args.error_rate <= 1:\n        p.error("--error_rate',
          '    if False:\n        p.error("--error_rate', "train.py's --error_rate outside [0, 1] accepted"),
         ('    if args.model in REAL_MODELS and not args.model_path:',

@@ -105,6 +105,7 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
     r = run("train.py", "--stage", "bogus")
     assert r.returncode == 2 and "invalid choice: 'bogus'" in r.stderr
     for argv, msg in ((["--steps", "0"], "--steps must be >= 1"), (["--variant", "on,bogus"], "unknown 'bogus'"),
+                      (["--stage", "distill", "--variant", "on,off,on"], "--variant: 'on' given twice"),
                       (["--trainer", "ppo"], "--trainer: unknown 'ppo'"),
                       (["--group_size", "1"], "--group_size must be >= 2"), (["--beta_d", "-0.1"], "--beta_d must be >= 0"),
                       (["--lr", "-1"], "--lr must be > 0"), (["--ghuber_power", "0"], "--ghuber_power must be > 0"),
