@@ -442,10 +442,11 @@ def parse_args(argv=None) -> Args:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.train_steps < 0:
         p.error(f"--train_steps must be >= 1, or 0 for --sample_steps, got {args.train_steps}")
-    bad = [v for v in args.variant.split(",") if v not in VARIANTS]
+    variants = args.variant.split(",")
+    bad = [v for v in variants if v not in VARIANTS]
     if bad:
         p.error(f"--variant: unknown {', '.join(map(repr, bad))}; choose from {', '.join(VARIANTS)}")
-    twice = sorted({v for v in args.variant.split(",") if args.variant.split(",").count(v) > 1})
+    twice = sorted({v for v in variants if variants.count(v) > 1})
     if twice:
         p.error(f"--variant: {', '.join(map(repr, twice))} given twice (a variant's run would overwrite its first "
                 "checkpoint and curve)")
