@@ -1,5 +1,5 @@
 """The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
-and CI runs the README's test command."""
+CI runs the README's test command, and the README's Tables 1 and 4 are results/report.md's."""
 import os
 import re
 
@@ -192,3 +192,32 @@ def test_every_flag_the_docs_quote_is_a_flag_of_ours():
     bad = [f"{page}: {f}" for page in PAGES
            for f in sorted(quoted_flags(open(os.path.join(ROOT, page), encoding="utf-8").read()) - ours - OUTSIDE_FLAGS)]
     assert len(ours) > 100 and not bad, "\n".join(bad)
+
+
+def table_after(text: str, marker: str) -> dict:
+    """The first Markdown table after the line that starts with `marker`: {first cell: [the other cells]}, header
+    and separator rows left out."""
+    lines = ("\n" + text).split("\n" + marker, 1)[1].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    rows = lines[start + 2:end]
+    cells = [[c.strip() for c in r.strip("|").split(" | ")] for r in rows]
+    return {c[0]: c[1:] for c in cells}
+
+
+def test_table_after_reads_the_first_table_after_its_marker():
+    text = "x\n| a | b |\n|---|---|\n| no | 0 |\n## T\nsome words\n\n| m | s |\n|---|---|\n| A | 1 | 2 |\n| B | 3 |\n"
+    assert table_after(text, "## T") == {"A": ["1", "2"], "B": ["3"]}
+
+
+def test_readmes_tables_1_and_4_are_the_reports():
+    """The README's Table 1 and Table 4 are results/report.md's, the numbers `python report.py results` wrote: the
+    same rows in the same order, each README row the start of the report's (Table 4 in the README leaves out
+    `solved`). A report rerun that changes a number, or a hand edit of one side, fails here."""
+    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    report = open(os.path.join(ROOT, "results", "report.md"), encoding="utf-8").read()
+    for ours, theirs in (("**Table 1**", "## Table 1:"), ("**Table 4**", "## Table 4:")):
+        a, b = table_after(readme, ours), table_after(report, theirs)
+        assert list(a) == list(b) and len(a) >= 5, (ours, list(a), list(b))
+        for model, cells in a.items():
+            assert len(cells) >= 4 and b[model][:len(cells)] == cells, (ours, model, cells, b[model])
