@@ -895,6 +895,11 @@ def main(argv=None):
         p.error(models.cannot_run_here(a.model, a.judge))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if a.model_path and a.model not in REAL_MODELS:
+        p.error(f"--model_path is read with --model ltx2 or hunyuan15 (real weights) only: --model {a.model} would "
+                "ignore it")
+    if a.judge_path and a.judge != "qwen-vl":
+        p.error(f"--judge_path is read with --judge qwen-vl (real weights) only: --judge {a.judge} would ignore it")
     if a.offload_judge and a.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if a.offload_text and a.model == "toy":

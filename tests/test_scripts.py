@@ -142,6 +142,12 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       *([(["--model", "hunyuan15-random"], "it needs a CUDA GPU"),
                          (["--judge", "qwen-vl-random"], "it needs a CUDA GPU")] if no_gpu else []),
                       (["--judge", "qwen-vl"], "--judge qwen-vl needs --judge_path"),
+                      (["--model_path", tmp_path], "--model_path is read with --model ltx2 or hunyuan15 (real weights)"
+                                                   " only: --model toy would ignore it"),
+                      (["--model", "ltx2-tiny", "--model_path", tmp_path], "--model ltx2-tiny would ignore it"),
+                      (["--judge_path", tmp_path], "--judge_path is read with --judge qwen-vl (real weights) only: "
+                                                   "--judge toy would ignore it"),
+                      (["--judge", "qwen-vl-tiny", "--judge_path", tmp_path], "--judge qwen-vl-tiny would ignore"),
                       (["--offload_judge"], "--offload_judge is for a VLM judge's weights"),
                       (["--offload_text"], "--offload_text is for a real model's text encoder"),
                       (["--lora", bad], "--lora loads a real model's Executor"),
@@ -603,10 +609,13 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
         base = own
         if k == "error_rate" and mode in (None, "pointing", "rank_rdistill"):
             base = [*own, "--condition", "vlm"]         # the toy VLM's errors reach only the prompts made from its D
+        if k in ("model_path", "judge_path") and mode is None:   # read only with real weights: set, then changed
+            base = ["--model", "ltx2", "--model_path", "/q"] if k == "model_path" else \
+                ["--judge", "qwen-vl", "--judge_path", "/i"]
         argv = [*base, f"--{k}", *value[k]]
-        if k in ("model_path", "lora", "offload_text") and mode is None:
+        if k in ("lora", "offload_text") and mode is None:
             argv = ["--model", "ltx2-tiny", *argv]       # a real model's flags, with a real model
-        if k in ("judge_path", "offload_judge") and mode is None:
+        if k == "offload_judge" and mode is None:
             argv = ["--judge", "qwen-vl-tiny", *argv]    # a VLM judge's, with a VLM judge
         if k not in reads:
             exit_2(bench.main, argv, capsys)
