@@ -895,11 +895,10 @@ def main(argv=None):
         p.error(models.cannot_run_here(a.model, a.judge))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
-    if a.model_path and a.model not in REAL_MODELS:
-        p.error(f"--model_path is read with --model ltx2 or hunyuan15 (real weights) only: --model {a.model} would "
-                "ignore it")
-    if a.judge_path and a.judge != "qwen-vl":
-        p.error(f"--judge_path is read with --judge qwen-vl (real weights) only: --judge {a.judge} would ignore it")
+    import train     # train.py's rule for the weights' paths (train imports this module, so not at the top)
+    for name, readers, chosen in train.unread_flags(train.Args(model=a.model, model_path=a.model_path, judge=a.judge,
+                                                               judge_path=a.judge_path)):
+        p.error(f"--{name} is read with {readers} only: {chosen} would ignore it")     # a path no loader reads
     if a.offload_judge and a.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if a.offload_text and a.model == "toy":
@@ -956,8 +955,7 @@ def main(argv=None):
     models.use_cpu(a.threads)
     judge = pairs = executor = None
     try:
-        if a.real:       # the loaders train.py uses (train imports this module, so not at the top)
-            import train
+        if a.real:       # the loaders train.py uses
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
                              init=a.checkpoint or "", offload_text=a.offload_text, offload_judge=a.offload_judge)
             model, judge = train.load_base(run), train.make_judge(run)

@@ -1,5 +1,6 @@
 """The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
-CI runs the README's test command, and the README's Tables 1 and 4 are results/report.md's."""
+CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, and each mean ± sd a
+summary quotes stands on the page that measured it."""
 import os
 import re
 
@@ -225,10 +226,9 @@ def test_readmes_tables_1_and_4_are_the_reports():
 
 def test_every_mean_and_spread_a_summary_quotes_is_on_the_page_that_measured_it():
     """Each "mean ± sd" the README quotes (about 200) stands in results/report.md or a page of docs/, where its runs
-    and commands are; each that docs/given-t.md's brief quotes stands in its sections or another page. A number typed
+    and commands are (whitespace folded: a number may wrap across lines); each that docs/given-t.md's brief quotes stands in its sections or another page. A number typed
     into a summary alone, or left behind when its page was remeasured, fails here."""
-    flat = lambda text: re.sub(r"\s+", " ", text)  # noqa: E731  (a number may wrap across lines)
-    read = lambda p: flat(open(os.path.join(ROOT, p), encoding="utf-8").read())  # noqa: E731
+    read = lambda p: re.sub(r"\s+", " ", open(os.path.join(ROOT, p), encoding="utf-8").read())  # noqa: E731
     given_t = read(os.path.join("docs", "given-t.md"))
     brief = given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
     sources = " ".join(read(p) for p in [os.path.join("results", "report.md")] + PAGES[1:])
