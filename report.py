@@ -302,6 +302,26 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     ax.set(xlabel="toy VLM error rate", ylabel="bench task score", title="Executor vs Demonstrator")
     ax.legend(fontsize=7)
     save_figure(plt, fig, os.path.join(out, "error_rate.png"))
+    # per seed: the values behind each mean ± sd above (Fig. 7's subgroups aside), one row per model and seed
+    lines += ["", "## Per seed: the values behind the means", "",
+              f"The final evaluations on {n} bench pairs (Table 1, Fig. 8), then each run's curve on its `--eval_n` "
+              "pairs: its end and its peak. A run NAME is `runs/NAME_sSEED` here; the Demonstrator's rows are each "
+              "run's own evaluation of the base given D at that toy VLM error rate.", "",
+              "| model or run | seed | task | agent | consistency | avg | task peak | avg peak |",
+              "|---|---|---|---|---|---|---|---|"]
+    ends = {**rows, "WMSD without r_cons (T)": [finals[("no_cons", s)][0] for s in seeds]}
+    curve_rows = {**{f"distill --variant {v} @end": runs for v, runs in variants.items() if v != ON_FULL},
+                  **{f"{name} @end ({' '.join(EXPERIMENTS[name][1]) or 'the defaults'})": [r["evals"] for r in rs]
+                     for name, rs in curves.items()}}
+    for label, rs in ends.items():
+        lines += [f"| {label} | {s} | " + " | ".join(f"{r[k]:.3f}" for k in K) + " | | |" for s, r in zip(seeds, rs)]
+    for label, runs in curve_rows.items():
+        lines += [f"| {label} | {s} | " + " | ".join(f"{ev[-1][k]:.3f}" for k in K) +
+                  f" | {AT['peak'](ev, 'task'):.3f} | {AT['peak'](ev, 'avg'):.3f} |" for s, ev in zip(seeds, runs)]
+    for name, e in ERRORS.items():
+        lines += [f"| Demonstrator (toy VLM's D, error rate {e:g}) in {name} | {s} | " +
+                  " | ".join(f"{r['fixed'][DEMO_ROW][k]:.3f}" for k in K) + " | | |"
+                  for s, r in zip(seeds, curves[name])]
     md = "\n".join(lines) + "\n"
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write(md)

@@ -124,6 +124,18 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     assert (f"| 0.1 | {bench.fmt(max(e['task'] for e in ev) for ev in beta)} | "
             f"{bench.fmt(ev[-1]['task'] for ev in beta)} | {bench.fmt(max(e['avg'] for e in ev) for ev in beta)} | "
             f"{bench.fmt(ev[-1]['avg'] for ev in beta)} |") in md
+    seeds = per_seed(md)   # the values behind the means: each model's and run's own row per seed
+    assert [seeds[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)][3] for s in (0, 1)] == \
+        [f"{ev[-1]['avg']:.3f}" for ev in full]
+    assert [seeds[("beta_0.1 @end (--beta_d 0.1)", s)][4] for s in (0, 1)] == \
+        [f"{max(e['task'] for e in ev):.3f}" for ev in beta]
+    wmsd = next(line for line in md.splitlines() if line.startswith("| WMSD (T) |")).split(" | ")
+    for i, k in enumerate(("task", "agent", "consistency", "avg")):   # Table 1's means, from the rows per seed
+        assert abs(float(wmsd[1 + i].split(" ± ")[0]) - sum(float(seeds[("WMSD (T)", s)][i]) for s in (0, 1)) / 2) \
+            < 1e-3, k
+    # Table 1's 5 rows and WMSD without r_cons, the 5 distill variants' curves, the other experiments' curves, and
+    # the Demonstrator at each error rate: a row per seed each
+    assert len(seeds) == 2 * (5 + 1 + 5 + len(report.EXPERIMENTS) - 1 + len(report.ERRORS))
     runs = len(report.EXPERIMENTS) * 2
     assert f"0 of {runs} runs already done" in r.stdout and f"[{runs}/{runs}]" in r.stdout
     etas = [float(x) for x in re.findall(r"report: \[\d+/\d+\].*ETA ([0-9.]+) min\)", r.stdout)]
@@ -139,6 +151,17 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     md = (out / "report.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith(f"| {report.ON_FULL} |"))
     assert row.split(" | ")[3:5] == ["0.999 ± 0.000"] * 2, row
+    assert [per_seed(md)[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)][3] for s in (0, 1)] == ["0.999"] * 2
+
+
+def per_seed(md: str) -> dict:
+    """report.md's per-seed table: (model or run, seed) -> its cells (task, agent, consistency, avg, peaks)."""
+    rows = {}
+    for line in md.split("## Per seed")[1].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 8 and cells[1].isdigit():
+            rows[(cells[0], int(cells[1]))] = cells[2:]
+    return rows
 
 
 def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
