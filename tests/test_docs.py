@@ -1,6 +1,6 @@
 """The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
-CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, and each mean ± sd a
-summary quotes stands on the page that measured it."""
+CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, and each mean ± sd and each
+score a summary quotes stands on a page that measured it."""
 import os
 import re
 
@@ -190,8 +190,8 @@ def test_every_flag_the_docs_quote_is_a_flag_of_ours():
     import train
     import world
     ours = set().union(*(script_flags(m.main) for m in (train, bench, report, world, mutants)))
-    bad = [f"{page}: {f}" for page in PAGES
-           for f in sorted(quoted_flags(open(os.path.join(ROOT, page), encoding="utf-8").read()) - ours - OUTSIDE_FLAGS)]
+    quoted = {page: quoted_flags(open(os.path.join(ROOT, page), encoding="utf-8").read()) for page in PAGES}
+    bad = [f"{page}: {f}" for page in PAGES for f in sorted(quoted[page] - ours - OUTSIDE_FLAGS)]
     assert len(ours) > 100 and not bad, "\n".join(bad)
 
 
@@ -226,8 +226,9 @@ def test_readmes_tables_1_and_4_are_the_reports():
 
 def test_every_mean_and_spread_a_summary_quotes_is_on_the_page_that_measured_it():
     """Each "mean ± sd" the README quotes (about 200) stands in results/report.md or a page of docs/, where its runs
-    and commands are (whitespace folded: a number may wrap across lines); each that docs/given-t.md's brief quotes stands in its sections or another page. A number typed
-    into a summary alone, or left behind when its page was remeasured, fails here."""
+    and commands are (whitespace folded: a number may wrap across lines); each that docs/given-t.md's brief quotes
+    stands in its sections or another page. A number typed into a summary alone, or left behind when its page was
+    remeasured, fails here."""
     read = lambda p: re.sub(r"\s+", " ", open(os.path.join(ROOT, p), encoding="utf-8").read())  # noqa: E731
     given_t = read(os.path.join("docs", "given-t.md"))
     brief = given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
@@ -236,3 +237,34 @@ def test_every_mean_and_spread_a_summary_quotes_is_on_the_page_that_measured_it(
         quoted = re.findall(r"\d\.\d{3} ± \d\.\d{3}", summary)
         assert len(quoted) > 40 and not [q for q in quoted if q not in pages], \
             sorted({q for q in quoted if q not in pages})
+
+
+def numbers(text: str) -> set:
+    """The numbers with three decimals a text holds, as written ("0.458"; "10.458" and "0.4581" are not it)."""
+    return set(re.findall(r"(?<![\d.])\d\.\d{3}(?![\d])", text))
+
+
+def test_numbers_reads_three_decimals_whole():
+    assert numbers("0.458, 10.458 and 0.4581; 1.000 ± 0.020 (3/200; 0.0%) 0.45") == {"0.458", "1.000", "0.020"}
+
+
+def test_every_score_a_summary_quotes_is_on_a_page_that_measured_it():
+    """The rule above for every number with three decimals (about 240 in the README, a single seed's score or a
+    difference too): each stands in results/report.md (its per-seed table included) or a page of docs/, and each in
+    docs/given-t.md's brief in its sections or another page. The one kind of number a summary may compute itself is
+    the shipped base table's Avg, the mean of its task, agent and consistency scores: checked here instead."""
+    read = lambda p: open(os.path.join(ROOT, p), encoding="utf-8").read()  # noqa: E731
+    readme, given_t = read("README.md"), read(os.path.join("docs", "given-t.md"))
+    base = table_after(readme, "### The shipped base (issue 2)")
+    avgs = set()
+    for condition, (task, agent, cons, avg) in base.items():
+        scores = [float(c.split(" (")[0]) for c in (task, agent, cons)]
+        assert f"{sum(scores) / 3:.3f}" == avg, (condition, scores, avg)
+        avgs.add(avg)
+    assert len(avgs) == 3, base
+    brief = given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
+    sources = [read(p) for p in [os.path.join("results", "report.md")] + PAGES[1:]]
+    for summary, pages in ((readme, sources), (brief, [s.replace(brief, "") for s in sources])):
+        found = set().union(*map(numbers, pages))
+        quoted = numbers(summary) - (avgs if summary is readme else set())
+        assert len(quoted) > 80 and not quoted - found, sorted(quoted - found)
