@@ -155,6 +155,19 @@ def curve_cells(runs: list, points) -> str:
     return " | ".join(fmt(AT[at](ev, k) for ev in runs) for k, at in points)
 
 
+def per_seed_rows(seeds: list[int], finals: dict, curves: dict) -> list[str]:
+    """The per-seed table's rows, a row per (label, seed): for each label of `finals` (a final evaluation per seed)
+    its task, agent, consistency and avg; for each label of `curves` (an eval curve per seed) the same at the
+    curve's end, then the curve's task and avg peaks."""
+    K, rows = (*KEYS, "avg"), []
+    for label, rs in finals.items():
+        rows += [f"| {label} | {s} | " + " | ".join(f"{r[k]:.3f}" for k in K) + " | | |" for s, r in zip(seeds, rs)]
+    for label, runs in curves.items():
+        rows += [f"| {label} | {s} | " + " | ".join(f"{ev[-1][k]:.3f}" for k in K) +
+                 f" | {AT['peak'](ev, 'task'):.3f} | {AT['peak'](ev, 'avg'):.3f} |" for s, ev in zip(seeds, runs)]
+    return rows
+
+
 def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
     """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
     the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
@@ -304,24 +317,18 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     save_figure(plt, fig, os.path.join(out, "error_rate.png"))
     # per seed: the values behind each mean ± sd above (Fig. 7's subgroups aside), one row per model and seed
     lines += ["", "## Per seed: the values behind the means", "",
-              f"The final evaluations on {n} bench pairs (Table 1, Fig. 8), then each run's curve on its `--eval_n` "
-              "pairs: its end and its peak. A run NAME is `runs/NAME_sSEED` here; the Demonstrator's rows are each "
-              "run's own evaluation of the base given D at that toy VLM error rate.", "",
+              f"The final evaluations on {n} bench pairs (Table 1, Fig. 8); the Demonstrator's, each run's own on the "
+              "curves' `--eval_n` pairs at that toy VLM error rate; then each run's curve on those pairs: its end and "
+              "its peaks. A run NAME is `runs/NAME_sSEED` here.", "",
               "| model or run | seed | task | agent | consistency | avg | task peak | avg peak |",
               "|---|---|---|---|---|---|---|---|"]
-    ends = {**rows, "WMSD without r_cons (T)": [finals[("no_cons", s)][0] for s in seeds]}
-    curve_rows = {**{f"distill --variant {v} @end": runs for v, runs in variants.items() if v != ON_FULL},
+    evaluated = {**rows, "WMSD without r_cons (T)": [finals[("no_cons", s)][0] for s in seeds],
+                 **{f"Demonstrator (toy VLM's D, error rate {e:g}) in {name}":
+                    [r["fixed"][DEMO_ROW] for r in curves[name]] for name, e in ERRORS.items()}}
+    curve_runs = {**{f"distill --variant {v} @end": runs for v, runs in variants.items() if v != ON_FULL},
                   **{f"{name} @end ({' '.join(EXPERIMENTS[name][1]) or 'the defaults'})": [r["evals"] for r in rs]
                      for name, rs in curves.items()}}
-    for label, rs in ends.items():
-        lines += [f"| {label} | {s} | " + " | ".join(f"{r[k]:.3f}" for k in K) + " | | |" for s, r in zip(seeds, rs)]
-    for label, runs in curve_rows.items():
-        lines += [f"| {label} | {s} | " + " | ".join(f"{ev[-1][k]:.3f}" for k in K) +
-                  f" | {AT['peak'](ev, 'task'):.3f} | {AT['peak'](ev, 'avg'):.3f} |" for s, ev in zip(seeds, runs)]
-    for name, e in ERRORS.items():
-        lines += [f"| Demonstrator (toy VLM's D, error rate {e:g}) in {name} | {s} | " +
-                  " | ".join(f"{r['fixed'][DEMO_ROW][k]:.3f}" for k in K) + " | | |"
-                  for s, r in zip(seeds, curves[name])]
+    lines += per_seed_rows(seeds, evaluated, curve_runs)
     md = "\n".join(lines) + "\n"
     with open(os.path.join(out, "report.md"), "w") as f:
         f.write(md)

@@ -553,13 +553,14 @@ MUTANTS = {
         ('    "on_full": ("rl", ["--lambda_task", "0", "--lambda_cons", "0"]),',
          '    "on_full": ("rl", ["--lambda_task", "0"]),', "Fig. 4 left's full objective keeping r_cons"),
     ]),
-    "report.py (per seed)": (["tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
+    "report.py (per seed)": (["tests/test_report.py::test_per_seed_rows_give_each_seed_its_own_values",
+                              "tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
         ('" | ".join(f"{ev[-1][k]:.3f}" for k in K)', '" | ".join(f"{ev[0][k]:.3f}" for k in K)',
          "the per-seed table giving a curve's start as its end"),
         ("f\" | {AT['peak'](ev, 'task'):.3f} |", "f\" | {AT['end'](ev, 'task'):.3f} |",
          "the per-seed table giving a curve's end as its task peak"),
-        ('    ends = {**rows, "WMSD without r_cons (T)": [finals[("no_cons", s)][0] for s in seeds]}',
-         '    ends = rows', "the per-seed table leaving out WMSD without r_cons"),
+        ('    evaluated = {**rows, "WMSD without r_cons (T)": [finals[("no_cons", s)][0] for s in seeds],',
+         '    evaluated = {**rows,', "the per-seed table leaving out WMSD without r_cons"),
         ('" | | |" for s, r in zip(seeds, rs)]', '" | | |" for s, r in zip(seeds, rs[::-1])]',
          "the per-seed table giving Table 1's seeds in the wrong order"),
     ]),

@@ -103,6 +103,18 @@ def test_subgroup_scores_for_fig7():
     assert kinds["edge (left)"] == [sum(i % 2 == 0 for i in left), len(left)] and left
 
 
+def test_per_seed_rows_give_each_seed_its_own_values():
+    """report.per_seed_rows: a final evaluation's scores, or a curve's at its end and then its peaks, in the order of
+    the seeds they belong to."""
+    rec = lambda t, a, c: {"task": t, "agent": a, "consistency": c, "avg": (t + a + c) / 3}  # noqa: E731
+    curve = lambda *tasks: [{**rec(t, 0.5, 1.0), "step": i} for i, t in enumerate(tasks)]  # noqa: E731
+    assert report.per_seed_rows([3, 7], {"M": [rec(0.1, 0.2, 0.3), rec(0.4, 0.5, 0.6)]},
+                                {"R": [curve(0.2, 0.6, 0.4), curve(0.1, 0.3, 0.5)]}) == [
+        "| M | 3 | 0.100 | 0.200 | 0.300 | 0.200 | | |", "| M | 7 | 0.400 | 0.500 | 0.600 | 0.500 | | |",
+        "| R | 3 | 0.400 | 0.500 | 1.000 | 0.633 | 0.600 | 0.700 |",
+        "| R | 7 | 0.500 | 0.500 | 1.000 | 0.667 | 0.500 | 0.667 |"]
+
+
 def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
     out = tmp_path / "report"
     r = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
@@ -145,13 +157,17 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     for s in (0, 1):   # the full objective's row reads its own runs (in the tiny runs its numbers may equal WMSD's)
         log = out / "runs" / f"on_full_s{s}" / "rl.jsonl"
         recs = [json.loads(line) for line in log.read_text().splitlines()]
-        log.write_text("".join(json.dumps({**r, "avg": 0.999} if r.get("eval") else r) + "\n" for r in recs))
+        for i, r in enumerate(r for r in recs if r.get("eval")):   # the i-th evaluation; the task's peak at i = 1
+            r.update(avg=0.9 + i / 1000, task=0.9 if i == 1 else 0.1 + i / 100)
+        log.write_text("".join(json.dumps(r) + "\n" for r in recs))
     again = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
     assert again.returncode == 0 and f"{runs} of {runs} runs already done; running 0" in again.stdout
     md = (out / "report.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith(f"| {report.ON_FULL} |"))
-    assert row.split(" | ")[3:5] == ["0.999 ± 0.000"] * 2, row
-    assert [per_seed(md)[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)][3] for s in (0, 1)] == ["0.999"] * 2
+    assert row.split(" | ")[1:5] == ["0.100 ± 0.000", "0.120 ± 0.000", "0.900 ± 0.000", "0.902 ± 0.000"], row
+    # the per-seed rows: task, agent, consistency, avg at the end, then the task's and the average's peaks
+    on_full = [per_seed(md)[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)] for s in (0, 1)]
+    assert [(c[0], c[3], c[4], c[5]) for c in on_full] == [("0.120", "0.902", "0.900", "0.902")] * 2, on_full
 
 
 def per_seed(md: str) -> dict:
