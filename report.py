@@ -11,6 +11,7 @@ Runs every experiment of EXPERIMENTS as a train.py run per training seed, then w
   Fig. 7              the task score per task family and the agent score per agent type
   Fig. 8              WMSD with and without the consistency reward, frames side by side
   beyond the paper    the Executor's gain over the Demonstrator vs the toy VLM's error rate
+  per seed            the values behind each mean ± sd: every final evaluation and run curve, seed by seed
 Finished runs are kept in OUT_DIR/runs and reused when their command and base checkpoint are unchanged, so an
 interrupted report loses nothing. The arithmetic over seeds (mean ± sd, Tab. 4's successes / valid) is here; the
 evaluation itself is bench.evaluate.
