@@ -1,6 +1,6 @@
 """The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
-CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, and each mean ± sd and each
-score a summary quotes stands on a page that measured it."""
+CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, each mean ± sd and each
+score a summary quotes stands on a page that measured it, and a mean ± sd given with its seeds' values adds up."""
 import os
 import re
 
@@ -268,3 +268,43 @@ def test_every_score_a_summary_quotes_is_on_a_page_that_measured_it():
         found = set().union(*map(numbers, pages))
         quoted = numbers(summary) - (avgs if summary is readme else set())
         assert len(quoted) > 80 and not quoted - found, sorted(quoted - found)
+
+
+# "mean ± sd (seed values)": two to six values, comma- or "and"-separated
+WITH_SEEDS = re.compile(r"(\d\.\d{3}) ± (\d\.\d{3}) \(((?:\d\.\d{3}(?:, | and )){1,5}\d\.\d{3})\)")
+
+
+def test_with_seeds_reads_a_mean_its_spread_and_its_values():
+    m = WITH_SEEDS.findall("0.152 ± 0.015 (0.135, 0.165, 0.155); 0.1 ± 0.2 (0.3); 0.476 ± 0.039 (0.521 and 0.458)")
+    assert m == [("0.152", "0.015", "0.135, 0.165, 0.155"), ("0.476", "0.039", "0.521 and 0.458")]
+
+
+def test_each_mean_and_spread_quoted_with_its_seeds_adds_up():
+    """Where a page gives a mean ± sd with the values behind it ("0.152 ± 0.015 (0.135, 0.165, 0.155)", about 60 in
+    the README and docs/), the mean and the sample sd (bench.mean_sd's) of those values are the quoted ones, to
+    the rounding of three decimals. A value or a mean mistyped on one side fails here."""
+    import bench
+    bad, n = [], 0
+    for page in PAGES:
+        text = re.sub(r"\s+", " ", open(os.path.join(ROOT, page), encoding="utf-8").read())
+        for mean, sd, values in WITH_SEEDS.findall(text):
+            n += 1
+            m, s = bench.mean_sd(float(v) for v in re.split(r", | and ", values))
+            if abs(m - float(mean)) > 1.1e-3 or abs(s - float(sd)) > 1.1e-3:
+                bad.append(f"{page}: {mean} ± {sd} ({values}): the values give {m:.4f} ± {s:.4f}")
+    assert n > 40 and not bad, "\n".join(bad)
+
+
+def test_the_reports_table_1_is_the_mean_of_its_rows_per_seed():
+    """results/report.md as committed: each of Table 1's means ± sds is that of its per-seed rows (to the rounding
+    of three decimals), so the table per seed and the tables above it come from the same runs."""
+    import bench
+    report = open(os.path.join(ROOT, "results", "report.md"), encoding="utf-8").read()
+    table1, per_seed = table_after(report, "## Table 1:"), report.split("## Per seed")[1]
+    for model, cells in table1.items():
+        rows = [r.split(" | ")[2:6] for r in per_seed.splitlines() if r.startswith(f"| {model} | ")]
+        assert len(rows) == 3, model
+        for i, cell in enumerate(cells[:4]):   # task, agent, consistency, avg
+            m, s = bench.mean_sd(float(r[i]) for r in rows)
+            mean, sd = map(float, cell.split(" ± "))
+            assert abs(m - mean) < 1.1e-3 and abs(s - sd) < 1.1e-3, (model, i, cell, [r[i] for r in rows])
