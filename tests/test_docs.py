@@ -1,6 +1,7 @@
 """The README and docs/: every relative link and anchor resolves, every code name and flag they quote is in the code,
 CI runs the README's test command, the README's Tables 1 and 4 are results/report.md's, each mean ± sd and each
-score a summary quotes stands on a page that measured it, and a mean ± sd given with its seeds' values adds up."""
+score a summary quotes stands on a page that measured it, and a mean ± sd given with its seeds' values, or a score
+with its counts, adds up."""
 import os
 import re
 
@@ -308,3 +309,17 @@ def test_the_reports_table_1_is_the_mean_of_its_rows_per_seed():
             m, s = bench.mean_sd(float(r[i]) for r in rows)
             mean, sd = map(float, cell.split(" ± "))
             assert abs(m - mean) < 1.1e-3 and abs(s - sd) < 1.1e-3, (model, i, cell, [r[i] for r in rows])
+
+
+def test_each_score_quoted_with_its_counts_is_their_ratio():
+    """A score given as Tab. 4 gives it, "0.090 (18/200; 0%)" (about 50 in the README, results/report.md and docs/):
+    successes / valid judgments is the score, to the rounding of three decimals (and of the successes, where they
+    are an average's, to one decimal)."""
+    bad, n = [], 0
+    for page in PAGES + [os.path.join("results", "report.md")]:
+        text = open(os.path.join(ROOT, page), encoding="utf-8").read()
+        for score, successes, valid in re.findall(r"(\d\.\d{3}) \((\d+(?:\.\d)?)/(\d+)[;)]", text):
+            n += 1
+            if int(valid) and abs(float(successes) / int(valid) - float(score)) > 5e-4 + 0.05 / int(valid):
+                bad.append(f"{page}: {score} ({successes}/{valid})")
+    assert n > 40 and not bad, "\n".join(bad)
