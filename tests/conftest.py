@@ -19,6 +19,16 @@ def run(*args, env=None):
                           env={**os.environ, **(env or {})})
 
 
+def per_seed(md: str) -> dict:
+    """report.md's per-seed table: (model or run, seed) -> its cells (task, agent, consistency, avg, peaks)."""
+    rows = {}
+    for line in md.split("## Per seed")[1].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 8 and cells[1].isdigit():
+            rows[(cells[0], int(cells[1]))] = cells[2:]
+    return rows
+
+
 def exit_2(main, argv: list, capsys, code: int = 2) -> str:
     """Call a script's main(argv) in this process, which spares an interpreter and torch start-up (~2 s) per bad
     input; expect it to stop with exit status 2 (bad input; or `code`, e.g. 1 for a failed run) and return what it

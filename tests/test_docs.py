@@ -300,11 +300,11 @@ def test_the_reports_table_1_is_the_mean_of_its_rows_per_seed():
     """results/report.md as committed: each of Table 1's means ± sds is that of its per-seed rows (to the rounding
     of three decimals), so the table per seed and the tables above it come from the same runs."""
     import bench
+    from conftest import per_seed
     report = open(os.path.join(ROOT, "results", "report.md"), encoding="utf-8").read()
-    table1, per_seed = table_after(report, "## Table 1:"), report.split("## Per seed")[1]
-    for model, cells in table1.items():
-        rows = [r.split(" | ")[2:6] for r in per_seed.splitlines() if r.startswith(f"| {model} | ")]
-        assert len(rows) == 3, model
+    seeds = per_seed(report)
+    for model, cells in table_after(report, "## Table 1:").items():
+        rows = [seeds[(model, s)] for s in (0, 1, 2)]
         for i, cell in enumerate(cells[:4]):   # task, agent, consistency, avg
             m, s = bench.mean_sd(float(r[i]) for r in rows)
             mean, sd = map(float, cell.split(" ± "))

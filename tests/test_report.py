@@ -12,7 +12,7 @@ import bench
 import report
 import reward
 import train
-from conftest import exit_2, run
+from conftest import exit_2, per_seed, run
 
 J = reward.Judgment
 
@@ -137,7 +137,7 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
             f"{bench.fmt(ev[-1]['task'] for ev in beta)} | {bench.fmt(max(e['avg'] for e in ev) for ev in beta)} | "
             f"{bench.fmt(ev[-1]['avg'] for ev in beta)} |") in md
     seeds = per_seed(md)   # the values behind the means: each model's and run's own row per seed
-    assert [seeds[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)][3] for s in (0, 1)] == \
+    assert [seeds[("on_full @end (--lambda_task 0 --lambda_cons 0)", s)][3] for s in (0, 1)] == \
         [f"{ev[-1]['avg']:.3f}" for ev in full]
     assert [seeds[("beta_0.1 @end (--beta_d 0.1)", s)][4] for s in (0, 1)] == \
         [f"{max(e['task'] for e in ev):.3f}" for ev in beta]
@@ -166,18 +166,8 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     row = next(line for line in md.splitlines() if line.startswith(f"| {report.ON_FULL} |"))
     assert row.split(" | ")[1:5] == ["0.100 ± 0.000", "0.120 ± 0.000", "0.900 ± 0.000", "0.902 ± 0.000"], row
     # the per-seed rows: task, agent, consistency, avg at the end, then the task's and the average's peaks
-    on_full = [per_seed(md)[(f"on_full @end (--lambda_task 0 --lambda_cons 0)", s)] for s in (0, 1)]
+    on_full = [per_seed(md)[("on_full @end (--lambda_task 0 --lambda_cons 0)", s)] for s in (0, 1)]
     assert [(c[0], c[3], c[4], c[5]) for c in on_full] == [("0.120", "0.902", "0.900", "0.902")] * 2, on_full
-
-
-def per_seed(md: str) -> dict:
-    """report.md's per-seed table: (model or run, seed) -> its cells (task, agent, consistency, avg, peaks)."""
-    rows = {}
-    for line in md.split("## Per seed")[1].splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 8 and cells[1].isdigit():
-            rows[(cells[0], int(cells[1]))] = cells[2:]
-    return rows
 
 
 def test_a_finished_run_is_reused_only_for_the_same_command_and_base(tmp_path):
