@@ -10,6 +10,16 @@ PAGES = ["README.md"] + [os.path.join("docs", f) for f in sorted(os.listdir(os.p
                          if f.endswith(".md")]
 
 
+def read(*path: str) -> str:
+    """A file of the repository, by its path's parts from the root."""
+    return open(os.path.join(ROOT, *path), encoding="utf-8").read()
+
+
+def given_t_brief(given_t: str) -> str:
+    """docs/given-t.md's brief: its section "What each base and setting adds, in brief", which quotes the others."""
+    return given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
+
+
 def slug(heading: str) -> str:
     """GitHub's anchor for a heading: lower case, punctuation dropped, each space a hyphen."""
     return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
@@ -31,7 +41,7 @@ def test_slug_matches_githubs_rule():
 
 
 def test_every_link_and_anchor_resolves():
-    text = {p: open(os.path.join(ROOT, p), encoding="utf-8").read() for p in PAGES}
+    text = {p: read(p) for p in PAGES}
     bad, n = [], 0
     for page, t in text.items():
         for target in links(t):
@@ -46,19 +56,19 @@ def test_every_link_and_anchor_resolves():
 
 
 def test_ci_runs_the_readmes_test_command():
-    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    readme = read("README.md")
     command = re.search(r"## Tests\s+```bash\n(.+?)\n```", readme).group(1).strip()
-    ci = open(os.path.join(ROOT, ".ci", "run"), encoding="utf-8").read().strip().splitlines()
+    ci = read(".ci", "run").strip().splitlines()
     assert ci[-1].strip() == command
 
 
 def test_readme_installs_what_ci_installs():
     """The README's install block: the same torch pin as .ci/run, installed before the requirements, which are
     installed under a constraints file that holds that pin (else pip may swap in a CUDA build of torch)."""
-    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    readme = read("README.md")
     block = re.search(r"## Install\n.*?```bash\n(.+?)\n```", readme, re.S).group(1)
     steps = [line.split("#")[0].split() for line in block.splitlines()]
-    ci = open(os.path.join(ROOT, ".ci", "run"), encoding="utf-8").read()
+    ci = read(".ci", "run")
     pin = re.search(r"pip install [^\n]*?(torch==[0-9.]+)", ci).group(1)
     torch_at = next(i for i, s in enumerate(steps) if s[:2] == ["pip", "install"] and pin in s)
     req_at = next(i for i, s in enumerate(steps) if "requirements.txt" in s)
@@ -84,11 +94,11 @@ def test_code_names_in_the_docs_resolve():
     import importlib
     bad, n = [], 0
     for page in PAGES:
-        for name in code_names(open(os.path.join(ROOT, page), encoding="utf-8").read()):
+        for name in code_names(read(page)):
             n += 1
             if "::" in name:
                 path, test = name.split("::")
-                ok = re.search(rf"^def {test}\(", open(os.path.join(ROOT, path), encoding="utf-8").read(), re.M)
+                ok = re.search(rf"^def {test}\(", read(path), re.M)
             else:
                 module, *attrs = name.split(".")
                 obj, ok = importlib.import_module(module), True
@@ -126,7 +136,7 @@ def test_equation_index_names_functions_that_cite_them():
     """README's "Every equation" table: each name resolves to a function whose docstring cites the row's equations
     (or App./Alg./reference label), together the row's functions cite all of them, and Eqs. 1-22 all have a row."""
     import importlib
-    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
+    readme = read("README.md")
     table = readme.split("### Every equation, and the function that holds it", 1)[1].split("\n\n")[2]
     rows = [r.split(" | ") for r in table.splitlines()[2:]]
     covered, bad = set(), []
@@ -191,7 +201,7 @@ def test_every_flag_the_docs_quote_is_a_flag_of_ours():
     import train
     import world
     ours = set().union(*(script_flags(m.main) for m in (train, bench, report, world, mutants)))
-    quoted = {page: quoted_flags(open(os.path.join(ROOT, page), encoding="utf-8").read()) for page in PAGES}
+    quoted = {page: quoted_flags(read(page)) for page in PAGES}
     bad = [f"{page}: {f}" for page in PAGES for f in sorted(quoted[page] - ours - OUTSIDE_FLAGS)]
     assert len(ours) > 100 and not bad, "\n".join(bad)
 
@@ -216,8 +226,8 @@ def test_readmes_tables_1_and_4_are_the_reports():
     """The README's Table 1 and Table 4 are results/report.md's, the numbers `python report.py results` wrote: the
     same rows in the same order, each README row the start of the report's (Table 4 in the README leaves out
     `solved`). A report rerun that changes a number, or a hand edit of one side, fails here."""
-    readme = open(os.path.join(ROOT, "README.md"), encoding="utf-8").read()
-    report = open(os.path.join(ROOT, "results", "report.md"), encoding="utf-8").read()
+    readme = read("README.md")
+    report = read("results", "report.md")
     for ours, theirs in (("**Table 1**", "## Table 1:"), ("**Table 4**", "## Table 4:")):
         a, b = table_after(readme, ours), table_after(report, theirs)
         assert list(a) == list(b) and len(a) >= 5, (ours, list(a), list(b))
@@ -230,11 +240,10 @@ def test_every_mean_and_spread_a_summary_quotes_is_on_the_page_that_measured_it(
     and commands are (whitespace folded: a number may wrap across lines); each that docs/given-t.md's brief quotes
     stands in its sections or another page. A number typed into a summary alone, or left behind when its page was
     remeasured, fails here."""
-    read = lambda p: re.sub(r"\s+", " ", open(os.path.join(ROOT, p), encoding="utf-8").read())  # noqa: E731
-    given_t = read(os.path.join("docs", "given-t.md"))
-    brief = given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
-    sources = " ".join(read(p) for p in [os.path.join("results", "report.md")] + PAGES[1:])
-    for summary, pages in ((read("README.md"), sources), (brief, sources.replace(brief, ""))):
+    fold = lambda p: re.sub(r"\s+", " ", read(p))  # noqa: E731
+    brief = given_t_brief(fold(os.path.join("docs", "given-t.md")))
+    sources = " ".join(fold(p) for p in [os.path.join("results", "report.md")] + PAGES[1:])
+    for summary, pages in ((fold("README.md"), sources), (brief, sources.replace(brief, ""))):
         quoted = re.findall(r"\d\.\d{3} ± \d\.\d{3}", summary)
         assert len(quoted) > 40 and not [q for q in quoted if q not in pages], \
             sorted({q for q in quoted if q not in pages})
@@ -254,8 +263,7 @@ def test_every_score_a_summary_quotes_is_on_a_page_that_measured_it():
     difference too): each stands in results/report.md (its per-seed table included) or a page of docs/, and each in
     docs/given-t.md's brief in its sections or another page. The one kind of number a summary may compute itself is
     the shipped base table's Avg, the mean of its task, agent and consistency scores: checked here instead."""
-    read = lambda p: open(os.path.join(ROOT, p), encoding="utf-8").read()  # noqa: E731
-    readme, given_t = read("README.md"), read(os.path.join("docs", "given-t.md"))
+    readme, brief = read("README.md"), given_t_brief(read("docs", "given-t.md"))
     base = table_after(readme, "### The shipped base (issue 2)")
     avgs = set()
     for condition, (task, agent, cons, avg) in base.items():
@@ -263,7 +271,6 @@ def test_every_score_a_summary_quotes_is_on_a_page_that_measured_it():
         assert f"{sum(scores) / 3:.3f}" == avg, (condition, scores, avg)
         avgs.add(avg)
     assert len(avgs) == 3, base
-    brief = given_t[given_t.index("## What each base and setting adds, in brief"):given_t.index("## A base that")]
     sources = [read(p) for p in [os.path.join("results", "report.md")] + PAGES[1:]]
     for summary, pages in ((readme, sources), (brief, [s.replace(brief, "") for s in sources])):
         found = set().union(*map(numbers, pages))
@@ -287,7 +294,7 @@ def test_each_mean_and_spread_quoted_with_its_seeds_adds_up():
     import bench
     bad, n = [], 0
     for page in PAGES:
-        text = re.sub(r"\s+", " ", open(os.path.join(ROOT, page), encoding="utf-8").read())
+        text = re.sub(r"\s+", " ", read(page))
         for mean, sd, values in WITH_SEEDS.findall(text):
             n += 1
             m, s = bench.mean_sd(float(v) for v in re.split(r", | and ", values))
@@ -301,7 +308,7 @@ def test_the_reports_table_1_is_the_mean_of_its_rows_per_seed():
     of three decimals), so the table per seed and the tables above it come from the same runs."""
     import bench
     from conftest import per_seed
-    report = open(os.path.join(ROOT, "results", "report.md"), encoding="utf-8").read()
+    report = read("results", "report.md")
     seeds = per_seed(report)
     for model, cells in table_after(report, "## Table 1:").items():
         rows = [seeds[(model, s)] for s in (0, 1, 2)]
@@ -317,7 +324,7 @@ def test_each_score_quoted_with_its_counts_is_their_ratio():
     are an average's, to one decimal)."""
     bad, n = [], 0
     for page in PAGES + [os.path.join("results", "report.md")]:
-        text = open(os.path.join(ROOT, page), encoding="utf-8").read()
+        text = read(page)
         for score, successes, valid in re.findall(r"(\d\.\d{3}) \((\d+(?:\.\d)?)/(\d+)[;)]", text):
             n += 1
             if int(valid) and abs(float(successes) / int(valid) - float(score)) > 5e-4 + 0.05 / int(valid):
