@@ -8,7 +8,7 @@ Runs every experiment of EXPERIMENTS as a train.py run per training seed, then w
   Fig. 4 right        the task and the average score vs the anchor weight beta_d (Eq. 12)
   Fig. 5              the four training settings: (i) RL only, (ii) WMSD, (iii) off-policy + RL on the teacher,
                       (iv) Alg. 2; task, agent and consistency, as the paper's
-  Fig. 7              the task score per task family and the agent score per agent type
+  Fig. 7              the task score per task family and the agent score per agent type; seed by seed, with counts
   Fig. 8              WMSD with and without the consistency reward, frames side by side
   beyond the paper    the Executor's gain over the Demonstrator vs the toy VLM's error rate
   per seed            the values behind each mean ± sd: every final evaluation and run curve, seed by seed
@@ -169,6 +169,19 @@ def per_seed_rows(seeds: list[int], finals: dict, curves: dict) -> list[str]:
     return rows
 
 
+def subgroup_score(counts) -> float:
+    """Fig. 7's score of a subgroup (a task family or an agent type) from its (successes, valid judgments)."""
+    return counts[0] / max(counts[1], 1)
+
+
+def subgroup_rows(seeds: list[int], groups: dict) -> list[str]:
+    """Fig. 7's table per seed, a row per (label, seed): each task family's task score, then each agent type's agent
+    score, each written "score (successes/valid)"; `groups`: label -> a final evaluation per seed."""
+    return [f"| {label} | {s} | " + " | ".join(f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1]})"
+                                               for part in ("families", "agent_types") for c in r[part].values()) + " |"
+            for label, rs in groups.items() for s, r in zip(seeds, rs)]
+
+
 def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
     """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
     the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
@@ -266,29 +279,30 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     # Fig. 7: per task family and per agent type
     groups = {"Base (T)": rows["Base (T)"], "Demonstrator": rows["Base + VLM (the Demonstrator: the toy VLM's D)"],
               "WMSD (T)": rows["WMSD (T)"]}
+    first = rows["Base (T)"][0]
+    head = [f"{key}: {g}" for part, key in (("families", "task"), ("agent_types", "agent")) for g in first[part]]
     plt, fig, axes = figure(2)
-    lines += ["", "## Fig. 7: task score per task family, agent score per agent type", "", "![](fig7.png)", "",
-              "| model | " + " | ".join(f"task: {f}" for f in rows["Base (T)"][0]["families"]) + " | " +
-              " | ".join(f"agent: {a}" for a in rows["Base (T)"][0]["agent_types"]) + " |",
-              "|---|" + "---|" * (len(rows["Base (T)"][0]["families"]) + len(rows["Base (T)"][0]["agent_types"]))]
     for ax, part, key in zip(axes, ("families", "agent_types"), ("task", "agent")):
-        names = list(rows["Base (T)"][0][part])
+        names = list(first[part])
         for i, (label, rs) in enumerate(groups.items()):
-            ms = [mean_sd(r[part][g][0] / max(r[part][g][1], 1) for r in rs) for g in names]
+            ms = [mean_sd(subgroup_score(r[part][g]) for r in rs) for g in names]
             ax.bar(np.arange(len(names)) + 0.27 * (i - 1), [m for m, _ in ms], 0.27, yerr=[sd for _, sd in ms],
                    capsize=2, label=label)
-        sizes = [rows["Base (T)"][0][part][g][1] for g in names]
-        ax.set_xticks(np.arange(len(names)), [f"{g}\n(n={k})" for g, k in zip(names, sizes)])
+        ax.set_xticks(np.arange(len(names)), [f"{g}\n(n={first[part][g][1]})" for g in names])
         ax.set(ylabel=f"bench {key} score", ylim=(0, 1.05))
     axes[0].legend(fontsize=7)
     save_figure(plt, fig, os.path.join(out, "fig7.png"))
+    lines += ["", "## Fig. 7: task score per task family, agent score per agent type", "", "![](fig7.png)", "",
+              "| model | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for label, rs in groups.items():
-        cells = [fmt(r[part][g][0] / max(r[part][g][1], 1) for r in rs)
-                 for part in ("families", "agent_types") for g in rs[0][part]]
+        cells = [fmt(subgroup_score(r[part][g]) for r in rs)
+                 for part in ("families", "agent_types") for g in first[part]]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    sizes = ", ".join(f"{g} {v}" for part in ("families", "agent_types")
-                      for g, (_, v) in rows["Base (T)"][0][part].items())
-    lines.append(f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.")
+    sizes = ", ".join(f"{g} {v}" for part in ("families", "agent_types") for g, (_, v) in first[part].items())
+    lines += [f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.", "",
+              "Per seed, each score with its successes / valid judgments:", "",
+              "| model | seed | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head),
+              *subgroup_rows(seeds, groups)]
     # Fig. 8: with and without the consistency reward
     a, b = (finals[(name, seeds[0])][1][:6] for name in ("wmsd", "no_cons"))
     sep = np.full((*a.shape[:3], 1, 3), 255, np.uint8)         # a white column between the two videos of a row
@@ -316,7 +330,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     ax.set(xlabel="toy VLM error rate", ylabel="bench task score", title="Executor vs Demonstrator")
     ax.legend(fontsize=7)
     save_figure(plt, fig, os.path.join(out, "error_rate.png"))
-    # per seed: the values behind each mean ± sd above (Fig. 7's subgroups aside), one row per model and seed
+    # per seed: the values behind each mean ± sd above (Fig. 7's subgroups have their own), a row per model and seed
     lines += ["", "## Per seed: the values behind the means", "",
               f"The final evaluations on {n} bench pairs (Table 1, Fig. 8); the Demonstrator's, each run's own on the "
               "curves' `--eval_n` pairs at that toy VLM error rate; then each run's curve on those pairs: its end and "

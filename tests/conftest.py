@@ -19,14 +19,27 @@ def run(*args, env=None):
                           env={**os.environ, **(env or {})})
 
 
-def per_seed(md: str) -> dict:
-    """report.md's per-seed table: (model or run, seed) -> its cells (task, agent, consistency, avg, peaks)."""
+def per_seed(md: str, section: str = "## Per seed") -> dict:
+    """A table per seed of report.md, the rows of `section` (up to the next heading) whose second cell is a seed:
+    (model or run, seed) -> its other cells. "## Per seed": task, agent, consistency, avg, peaks; "## Fig. 7": the
+    subgroups' scores."""
     rows = {}
-    for line in md.split("## Per seed")[1].splitlines():
+    for line in md.split("\n" + section)[1].split("\n## ")[0].splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 8 and cells[1].isdigit():
+        if line.startswith("|") and cells[1].isdigit():
             rows[(cells[0], int(cells[1]))] = cells[2:]
     return rows
+
+
+def table_after(text: str, marker: str) -> dict:
+    """The first Markdown table after the line that starts with `marker`: {first cell: [the other cells]}, header
+    and separator rows left out."""
+    lines = ("\n" + text).split("\n" + marker, 1)[1].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    rows = lines[start + 2:end]
+    cells = [[c.strip() for c in r.strip("|").split(" | ")] for r in rows]
+    return {c[0]: c[1:] for c in cells}
 
 
 def exit_2(main, argv: list, capsys, code: int = 2) -> str:

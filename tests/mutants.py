@@ -564,6 +564,18 @@ MUTANTS = {
         ('" | | |" for s, r in zip(seeds, rs)]', '" | | |" for s, r in zip(seeds, rs[::-1])]',
          "the per-seed table giving Table 1's seeds in the wrong order"),
     ]),
+    "report.py (Fig. 7 per seed)": (["tests/test_report.py::test_subgroup_rows_give_each_seed_its_counts",
+                                     "tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
+        ('    return counts[0] / max(counts[1], 1)', '    return counts[0] / max(counts[1] + 1, 1)',
+         "Fig. 7's scores with one judgment too many"),
+        ('for c in r[part].values()) + " |"', 'for c in r["families"].values()) + " |"',
+         "Fig. 7's table per seed leaving out the agent types"),
+        ('            for label, rs in groups.items() for s, r in zip(seeds, rs)]',
+         '            for label, rs in groups.items() for s, r in zip(seeds, rs[::-1])]',
+         "Fig. 7's table per seed giving the seeds in the wrong order"),
+        ('f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1]})"', 'f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1] + 1})"',
+         "Fig. 7's table per seed writing a count that is not the score's"),
+    ]),
     "train.py (step)": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',
          "a damaged --eval_cache file ending the run in a traceback"),

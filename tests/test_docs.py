@@ -5,6 +5,8 @@ with its counts, adds up."""
 import os
 import re
 
+from conftest import per_seed, table_after
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGES = ["README.md"] + [os.path.join("docs", f) for f in sorted(os.listdir(os.path.join(ROOT, "docs")))
                          if f.endswith(".md")]
@@ -206,17 +208,6 @@ def test_every_flag_the_docs_quote_is_a_flag_of_ours():
     assert len(ours) > 100 and not bad, "\n".join(bad)
 
 
-def table_after(text: str, marker: str) -> dict:
-    """The first Markdown table after the line that starts with `marker`: {first cell: [the other cells]}, header
-    and separator rows left out."""
-    lines = ("\n" + text).split("\n" + marker, 1)[1].splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
-    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
-    rows = lines[start + 2:end]
-    cells = [[c.strip() for c in r.strip("|").split(" | ")] for r in rows]
-    return {c[0]: c[1:] for c in cells}
-
-
 def test_table_after_reads_the_first_table_after_its_marker():
     text = "x\n| a | b |\n|---|---|\n| no | 0 |\n## T\nsome words\n\n| m | s |\n|---|---|\n| A | 1 | 2 |\n| B | 3 |\n"
     assert table_after(text, "## T") == {"A": ["1", "2"], "B": ["3"]}
@@ -303,19 +294,22 @@ def test_each_mean_and_spread_quoted_with_its_seeds_adds_up():
     assert n > 40 and not bad, "\n".join(bad)
 
 
-def test_the_reports_table_1_is_the_mean_of_its_rows_per_seed():
-    """results/report.md as committed: each of Table 1's means ± sds is that of its per-seed rows (to the rounding
-    of three decimals), so the table per seed and the tables above it come from the same runs."""
+def test_the_reports_table_1_and_fig_7_are_the_means_of_their_rows_per_seed():
+    """results/report.md as committed: each of Table 1's means ± sds is that of its per-seed rows, and each of Fig. 7's
+    that of its own rows per seed (to the rounding of three decimals), so the tables per seed and the tables above
+    them come from the same runs."""
     import bench
-    from conftest import per_seed
-    report = read("results", "report.md")
-    seeds = per_seed(report)
-    for model, cells in table_after(report, "## Table 1:").items():
-        rows = [seeds[(model, s)] for s in (0, 1, 2)]
-        for i, cell in enumerate(cells[:4]):   # task, agent, consistency, avg
-            m, s = bench.mean_sd(float(r[i]) for r in rows)
-            mean, sd = map(float, cell.split(" ± "))
-            assert abs(m - mean) < 1.1e-3 and abs(s - sd) < 1.1e-3, (model, i, cell, [r[i] for r in rows])
+    report, n = read("results", "report.md"), 0
+    for marker, section, k in (("## Table 1:", "## Per seed", 4), ("## Fig. 7:", "## Fig. 7", None)):
+        seeds = per_seed(report, section)
+        for model, cells in table_after(report, marker).items():
+            rows = [seeds[(model, s)] for s in (0, 1, 2)]
+            for i, cell in enumerate(cells[:k]):   # Table 1: task, agent, consistency, avg; Fig. 7: every subgroup
+                m, s = bench.mean_sd(float(r[i].split(" (")[0]) for r in rows)
+                mean, sd = map(float, cell.split(" ± "))
+                assert abs(m - mean) < 1.1e-3 and abs(s - sd) < 1.1e-3, (model, i, cell, [r[i] for r in rows])
+                n += 1
+    assert n == 5 * 4 + 3 * 5, n
 
 
 def test_each_score_quoted_with_its_counts_is_their_ratio():

@@ -12,7 +12,7 @@ import bench
 import report
 import reward
 import train
-from conftest import exit_2, per_seed, run
+from conftest import exit_2, per_seed, run, table_after
 
 J = reward.Judgment
 
@@ -115,6 +115,15 @@ def test_per_seed_rows_give_each_seed_its_own_values():
         "| R | 7 | 0.500 | 0.500 | 1.000 | 0.667 | 0.500 | 0.667 |"]
 
 
+def test_subgroup_rows_give_each_seed_its_counts():
+    """report.subgroup_rows: Fig. 7's row per (label, seed), task families then agent types, each score with the
+    successes and valid judgments it is the ratio of (a subgroup without a valid judgment scores 0)."""
+    ev = lambda fam, agent: {"families": fam, "agent_types": agent}  # noqa: E731
+    assert report.subgroup_rows([3, 7], {"M": [ev({"nav": [1, 4], "pos": [0, 0]}, {"sprite": [2, 3]}),
+                                               ev({"nav": [3, 4], "pos": [2, 5]}, {"sprite": [0, 3]})]}) == [
+        "| M | 3 | 0.250 (1/4) | 0.000 (0/0) | 0.667 (2/3) |", "| M | 7 | 0.750 (3/4) | 0.400 (2/5) | 0.000 (0/3) |"]
+
+
 def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
     out = tmp_path / "report"
     r = run("report.py", str(out), "--quick", "--checkpoint", tiny_ckpt)
@@ -145,6 +154,16 @@ def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_
     for i, k in enumerate(("task", "agent", "consistency", "avg")):   # Table 1's means, from the rows per seed
         assert abs(float(wmsd[1 + i].split(" ± ")[0]) - sum(float(seeds[("WMSD (T)", s)][i]) for s in (0, 1)) / 2) \
             < 1e-3, k
+    fig7, fig7_seeds = table_after(md, "## Fig. 7"), per_seed(md, "## Fig. 7")   # its subgroups, seed by seed
+    assert set(fig7_seeds) == {(m, s) for m in ("Base (T)", "Demonstrator", "WMSD (T)") for s in (0, 1)}
+    for (model, s), cells in fig7_seeds.items():
+        counts = [re.fullmatch(r"(\d\.\d{3}) \((\d+)/(\d+)\)", c).groups() for c in cells]
+        assert len(counts) == len(fig7[model]) and all(
+            float(x) == round(int(k) / max(int(v), 1), 3) for x, k, v in counts), (model, s, cells)
+    for model, cells in fig7.items():   # its means, from the rows per seed
+        for i, cell in enumerate(cells):
+            m = sum(float(fig7_seeds[(model, s)][i].split()[0]) for s in (0, 1)) / 2
+            assert abs(float(cell.split(" ± ")[0]) - m) < 1e-3, (model, i, cell)
     # Table 1's 5 rows and WMSD without r_cons, the 5 distill variants' curves, the other experiments' curves, and
     # the Demonstrator at each error rate: a row per seed each
     assert len(seeds) == 2 * (5 + 1 + 5 + len(report.EXPERIMENTS) - 1 + len(report.ERRORS))
