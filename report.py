@@ -61,6 +61,7 @@ AT = {"0": lambda ev, k: ev[0][k], "end": lambda ev, k: ev[-1][k], "peak": lambd
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
+FIG7 = {"families": "task", "agent_types": "agent"}   # Fig. 7: an evaluation's subgroups -> the score they count
 BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its numbers mean nothing)
     "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"],
              "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"]},
@@ -178,7 +179,7 @@ def subgroup_rows(seeds: list[int], groups: dict) -> list[str]:
     """Fig. 7's table per seed, a row per (label, seed): each task family's task score, then each agent type's agent
     score, each written "score (successes/valid)"; `groups`: label -> a final evaluation per seed."""
     return [f"| {label} | {s} | " + " | ".join(f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1]})"
-                                               for part in ("families", "agent_types") for c in r[part].values()) + " |"
+                                               for part in FIG7 for c in r[part].values()) + " |"
             for label, rs in groups.items() for s, r in zip(seeds, rs)]
 
 
@@ -280,9 +281,9 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     groups = {"Base (T)": rows["Base (T)"], "Demonstrator": rows["Base + VLM (the Demonstrator: the toy VLM's D)"],
               "WMSD (T)": rows["WMSD (T)"]}
     first = rows["Base (T)"][0]
-    head = [f"{key}: {g}" for part, key in (("families", "task"), ("agent_types", "agent")) for g in first[part]]
+    head = [f"{key}: {g}" for part, key in FIG7.items() for g in first[part]]
     plt, fig, axes = figure(2)
-    for ax, part, key in zip(axes, ("families", "agent_types"), ("task", "agent")):
+    for ax, (part, key) in zip(axes, FIG7.items()):
         names = list(first[part])
         for i, (label, rs) in enumerate(groups.items()):
             ms = [mean_sd(subgroup_score(r[part][g]) for r in rs) for g in names]
@@ -295,10 +296,9 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     lines += ["", "## Fig. 7: task score per task family, agent score per agent type", "", "![](fig7.png)", "",
               "| model | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for label, rs in groups.items():
-        cells = [fmt(subgroup_score(r[part][g]) for r in rs)
-                 for part in ("families", "agent_types") for g in first[part]]
+        cells = [fmt(subgroup_score(r[part][g]) for r in rs) for part in FIG7 for g in first[part]]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    sizes = ", ".join(f"{g} {v}" for part in ("families", "agent_types") for g, (_, v) in first[part].items())
+    sizes = ", ".join(f"{g} {v}" for part in FIG7 for g, (_, v) in first[part].items())
     lines += [f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.", "",
               "Per seed, each score with its successes / valid judgments:", "",
               "| model | seed | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head),
