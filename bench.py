@@ -193,10 +193,15 @@ def consistency_faults(judgments: list[dict]) -> dict:
 
 
 def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
-    """Agent score per agent type (paper Fig. 7 right): the first-person camera vs a sprite (on a real-image bench,
-    any other agent)."""
-    return family_scores(pairs, judgments, "agent", lambda p: "first-person view" if p.task.agent == world.FIRST_PERSON
-                         else "sprite" if hasattr(p, "scene") else "other agent")
+    """Agent score per agent type (paper Fig. 7 right): the first-person camera vs a sprite; on a real-image bench,
+    the taxonomy's agent category where its rows carry one (world.classify_tasks; train.task_groups), else any
+    other agent."""
+    def group(p):
+        if getattr(p.task, "agent_type", None):
+            return p.task.agent_type
+        return "first-person view" if p.task.agent == world.FIRST_PERSON else "sprite" if hasattr(p, "scene") \
+            else "other agent"
+    return family_scores(pairs, judgments, "agent", group)
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,

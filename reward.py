@@ -340,8 +340,9 @@ class VLMJudge:
         from tokenizers import pre_tokenizers
         specials = ["<pad>", "<unk>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
                     "<|image_pad|>", "<|video_pad|>"]
+        taxonomy = [world.taxonomy_prompt("", key) for key in world.TAXONOMY_QUESTIONS]
         prompt_words = " ".join([TASK_REWARD_PROMPT, CONSISTENCY_REWARD_PROMPT, BENCH_TASK_PROMPT, BENCH_AGENT_PROMPT,
-                                 BENCH_CONSISTENCY_PROMPT, " ".join(words), "user assistant Yes No 0 1"])
+                                 BENCH_CONSISTENCY_PROMPT, *taxonomy, " ".join(words), "user assistant Yes No 0 1"])
         toks = {w for w, _ in pre_tokenizers.Whitespace().pre_tokenize_str(prompt_words)} | {"\n"}
         return models.word_tokenizer(sorted(toks), specials, punctuation=True, pad_token="<pad>", unk_token="<unk>",
                                      additional_special_tokens=specials[2:])
@@ -427,8 +428,9 @@ class VLMJudge:
         return f"<|im_start|>user\n{vision}{prompt}<|im_end|>\n<|im_start|>assistant\n"
 
     def logits(self, videos, prompts: list[str]) -> np.ndarray:
-        """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches.
-        An offloaded judge (--offload_judge) visits its device once for all the batches of the call."""
+        """Next-token logits (N, vocab) after `<|im_start|>assistant`, for each (video, prompt), left-padded batches;
+        videos=None: the prompts alone, no image (choose). An offloaded judge (--offload_judge) visits its device once
+        for all the batches of the call."""
         import torch
 
         import models
@@ -436,23 +438,42 @@ class VLMJudge:
         with torch.no_grad(), models.visiting(self.model, self.device):   # no copy unless offloaded
             dev = self.model.device          # the VLM's GPU when it has one (train.make_judge)
             for s in range(0, len(prompts), self.batch):
-                vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
-                frames = [self._frames(v) for v in vids]
-                img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
-                per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
+                ps = prompts[s:s + self.batch]
+                frames = [[] for _ in ps] if videos is None else [self._frames(v) for v in videos[s:s + self.batch]]
+                vision = {}
+                if videos is not None:
+                    img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
+                    vision = dict(pixel_values=img["pixel_values"].to(dev, self.model.dtype),
+                                  image_grid_thw=img["image_grid_thw"].to(dev))
+                    per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
                 texts, k = [], 0
                 for fs, p in zip(frames, ps):
-                    texts.append(self._chat(per_image[k:k + len(fs)], p))
+                    texts.append(self._chat(per_image[k:k + len(fs)] if fs else [], p))
                     k += len(fs)
                 self.tokenizer.padding_side = "left"
                 enc = self.tokenizer(texts, return_tensors="pt", padding=True)
                 mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()         # 0 text, 1 image (transformers 5)
                 o = self.model(input_ids=enc.input_ids.to(dev), attention_mask=enc.attention_mask.to(dev),
-                               pixel_values=img["pixel_values"].to(dev, self.model.dtype),
-                               image_grid_thw=img["image_grid_thw"].to(dev), mm_token_type_ids=mm.to(dev),
-                               logits_to_keep=1)   # the next token's logits only: a video is thousands of tokens
-                out.append(o.logits[:, -1].float().cpu().numpy())
+                               mm_token_type_ids=mm.to(dev), logits_to_keep=1, **vision)
+                out.append(o.logits[:, -1].float().cpu().numpy())   # the next token's only: a video is 1000s of tokens
         return np.concatenate(out)
+
+    def choose(self, prompts: list[str], n: int) -> list:
+        """A text-only multiple-choice question (Sec. 4.1.2's prompt-only taxonomy, world.classify_tasks): the greedy
+        first answer token to each prompt read as an option's number 1..n (n <= 9: one digit token each). Returns the
+        option's index 0..n-1, or None where that token is no option's number or the logits are not finite (a
+        malformed answer)."""
+        if not 1 <= n <= 9:
+            raise ValueError(f"choose: {n} options; it reads 1 to 9, one digit token each")
+        vocab = self.tokenizer.get_vocab()
+        digits = [vocab.get(str(k)) for k in range(1, n + 1)]
+        if None in digits:
+            raise ValueError(f"choose: the VLM's tokenizer has no single token for each number 1..{n}")
+        out = []
+        for lg in self.logits(None, prompts):
+            top = int(lg.argmax()) if np.isfinite(lg).all() else None
+            out.append(digits.index(top) if top in digits else None)
+        return out
 
     def yes_no(self, images, prompt: str) -> list:
         """One yes/no question about each still image (the suitability filter, Fig. 12): True / False / None."""

@@ -1448,11 +1448,20 @@ def dataset_pairs(path: str, model, need: int, flag: str) -> list:
             raise ValueError(f"{path} line {r['line']}: {e}") from None
     if len(rows) < need:
         raise ValueError(f"dataset {path!r} has {len(rows)} rows, fewer than {flag} {need}")
-    return [SimpleNamespace(frame0=r["frame0"],
-                            task=SimpleNamespace(text=r["task"], family=r.get("family") or world.task_family(r["task"]),
-                                                 agent=world.split_task(r["task"])[0]),
+    return [SimpleNamespace(frame0=r["frame0"], task=SimpleNamespace(text=r["task"], **task_groups(r)),
                             d_vlm=r["description"], image=r["image"])
             for r in rows]
+
+
+def task_groups(row: dict) -> dict:
+    """Fig. 7's subgroups of a WorldTasks row: family (its task type) and agent_type, the taxonomy's categories where
+    the row carries them (world.classify_tasks; world.UNCLASSIFIED for a malformed answer), else the keyword family
+    and no agent type (bench.agent_type_scores: "other agent"); agent, the name in T's brackets."""
+    if "task_type" in row:
+        family, agent_type = row["task_type"] or world.UNCLASSIFIED, row.get("agent_type") or world.UNCLASSIFIED
+    else:
+        family, agent_type = row.get("family") or world.task_family(row["task"]), None
+    return dict(family=family, agent_type=agent_type, agent=world.split_task(row["task"])[0])
 
 
 def load_bench(args: Args, model, train: list) -> list | None:

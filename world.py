@@ -758,11 +758,61 @@ def task_family(task: str) -> str:
     return next((f for f, ws in FAMILY_WORDS.items() if any(w in instr for w in ws)), "other")
 
 
+# Sec. 4.1.2's prompt-only taxonomy (Fig. 3; Fig. 7's subgroups): the paper's categories, in its order
+AGENT_TAXONOMY = ("first-person view", "human character", "vehicle", "inanimate object or landmark", "creature",
+                  "animal", "crowd")
+TASK_TAXONOMY = ("positioning", "navigation", "object interaction", "perception", "combat action",
+                 "compound instruction", "vehicle control", "UI interaction", "other")
+UNCLASSIFIED = "unclassified"   # a row whose taxonomy answer was malformed
+
+TAXONOMY_PROMPT = (  # ours: the paper names its classifier (Qwen3.5-27B, prompt only) but shows no prompt
+    "Here is a task for an agent in a video, written as [agent]: instruction.\n"
+    "Task: {task}\n"
+    "{question}\n"
+    "{options}\n"
+    "Answer with ONLY the number of one category. Do not include any explanation or additional text.")
+TAXONOMY_QUESTIONS = {"agent_type": ("Which category does the agent named in square brackets belong to?",
+                                     AGENT_TAXONOMY),
+                      "task_type": ("Which category does the instruction belong to?", TASK_TAXONOMY)}
+
+
+def taxonomy_prompt(task: str, key: str) -> str:
+    """TAXONOMY_PROMPT for task T and one of TAXONOMY_QUESTIONS' keys: its categories as a numbered list, 1..n."""
+    question, options = TAXONOMY_QUESTIONS[key]
+    return TAXONOMY_PROMPT.format(task=task, question=question,
+                                  options="\n".join(f"{k}. {o}" for k, o in enumerate(options, 1)))
+
+
+def classify_tasks(vlm, tasks: list[str]) -> list[dict]:
+    """Sec. 4.1.2: "We further characterize the final prompt set using a prompt-only Qwen3.5-27B taxonomy" -- each
+    task T's addressed agent (AGENT_TAXONOMY) and task type (TASK_TAXONOMY), asked of a VLM from T's text alone, no
+    image. vlm.choose(prompts, n) (reward.VLMJudge.choose) answers each with an option's index 0..n-1, or None for a
+    malformed answer, kept as None (App. A.4 discards such answers). Returns [{"agent_type": category or None,
+    "task_type": category or None}] in the order of `tasks`."""
+    out = [{} for _ in tasks]
+    for key, (_, options) in TAXONOMY_QUESTIONS.items():
+        for row, k in zip(out, vlm.choose([taxonomy_prompt(t, key) for t in tasks], len(options)) if tasks else []):
+            row[key] = None if k is None else options[k]
+    return out
+
+
 def dataset_composition(splits: dict[str, list[dict]], top: int = 8) -> dict[str, dict[str, dict[str, int]]]:
     """Fig. 3 (Sec. 4.1.2, "WorldTasks prompt composition") for WorldTasks JSONL files (load_dataset's rows), split by
-    split: the agent T addresses, as written between its brackets (lower-cased), the `top` commonest over all splits
-    by name and the rest as "other"; and the task family by task_family's keywords. {split: {"agent": {category: n},
-    "task": {family: n}}}, every category in every split, each panel summing to the split's rows."""
+    split. Where every row carries the taxonomy (classify_tasks; make_worldtasks writes it): the paper's categories,
+    AGENT_TAXONOMY and TASK_TAXONOMY, in its order, and UNCLASSIFIED for a malformed answer. Otherwise: the agent T
+    addresses, as written between its brackets (lower-cased), the `top` commonest over all splits by name and the rest
+    as "other"; and the task family by task_family's keywords. {split: {"agent": {category: n}, "task": {family:
+    n}}}, every category in every split, each panel summing to the split's rows."""
+    if all("agent_type" in r and "task_type" in r for rows in splits.values() for r in rows):
+        out = {}
+        for split, rows in splits.items():
+            agent = dict.fromkeys((*AGENT_TAXONOMY, UNCLASSIFIED), 0)
+            task = dict.fromkeys((*TASK_TAXONOMY, UNCLASSIFIED), 0)
+            for r in rows:
+                agent[r["agent_type"] or UNCLASSIFIED] += 1
+                task[r["task_type"] or UNCLASSIFIED] += 1
+            out[split] = {"agent": agent, "task": task}
+        return out
     agents = [[split_task(r["task"])[0].strip().lower() for r in rows] for rows in splits.values()]
     total = collections.Counter(a for a_s in agents for a in a_s)
     names = sorted(total, key=lambda a: (-total[a], a))
@@ -779,7 +829,8 @@ def dataset_composition(splits: dict[str, list[dict]], top: int = 8) -> dict[str
 
 def load_dataset(path: str) -> list[dict]:
     """A WorldTasks JSONL file: one {"image", "task", "description", "agent", "family"} per line (image a path,
-    relative to the file). Raises ValueError "path line N: ..." on the first bad line, naming the problem."""
+    relative to the file), and the taxonomy's "agent_type" and "task_type" where make_worldtasks wrote them (a
+    category, or null). Raises ValueError "path line N: ..." on the first bad line, naming the problem."""
     import json
     import os
     if not os.path.isfile(path):
@@ -796,6 +847,10 @@ def load_dataset(path: str) -> list[dict]:
                 if missing:
                     raise ValueError(f"missing or empty {', '.join(missing)}")
                 split_task(r["task"])
+                for key, (_, options) in TAXONOMY_QUESTIONS.items():
+                    if r.get(key) is not None and r[key] not in options:
+                        raise ValueError(f"{key} {r[key]!r} is not one of the taxonomy's categories "
+                                         f"({', '.join(options)})")
                 r["image"] = os.path.join(os.path.dirname(os.path.abspath(path)), r["image"])
                 if not os.path.isfile(r["image"]):
                     raise ValueError(f"image {r['image']!r} does not exist")
@@ -864,9 +919,11 @@ def aesthetic_top(scores, keep: float = AESTHETIC_KEEP) -> np.ndarray:
 def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int = 8, aesthetic=None) -> dict:
     """Sec. 4.1.1 / App. A.6 end to end: the image-quality filter, the aesthetic ranking (with a scorer such as
     CLIPAesthetic: keep the top 90% of what passed), the VLM suitability filter (Fig. 12), and `per_image`
-    task-solution pairs per kept image from the VLM, written as JSONL (load_dataset's format).
-    `vlm` needs yes_no(images, prompt) -> list[bool | None] and generate(images, prompt) -> list[str]
-    (reward.VLMJudge has both). Returns counts of what was kept and why the rest was dropped."""
+    task-solution pairs per kept image from the VLM, each labelled by Sec. 4.1.2's prompt-only taxonomy
+    (classify_tasks), written as JSONL (load_dataset's format). `vlm` needs yes_no(images, prompt) -> list[bool |
+    None], generate(images, prompt) -> list[str] and choose(prompts, n) -> list[int | None] (reward.VLMJudge has all
+    three). Returns counts of what was kept and why the rest was dropped, and of the rows the taxonomy could not
+    label (an answer that was no category's number: "taxonomy malformed")."""
     import json
     import os
 
@@ -900,6 +957,9 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
         for task, desc in pairs:
             rows.append({"image": os.path.relpath(p, base), "task": task, "description": desc,
                          "agent": split_task(task)[0], "family": task_family(task)})
+    for r, types in zip(rows, classify_tasks(vlm, [r["task"] for r in rows])):
+        r.update(types)
+    counts["taxonomy malformed"] = sum(None in (r["agent_type"], r["task_type"]) for r in rows)
     tmp = f"{out_path}.tmp{os.getpid()}"
     with open(tmp, "w") as f:
         f.writelines(json.dumps(r) + "\n" for r in rows)

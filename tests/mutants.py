@@ -42,6 +42,8 @@ REPORT = [f"tests/test_report.py::test_{name}" for name in (
     "ctrl_c_starts_no_more_runs_and_keeps_the_finished")] + [
     "tests/test_scripts.py::test_output_paths_are_checked_before_any_work"]
 
+TAXONOMY = "tests/test_real_backends.py::test_the_prompt_only_taxonomy_labels_rows_and_groups_fig_3_and_fig_7"
+
 BAD_INPUT = ["tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written",
              "tests/test_scripts.py::test_bad_input_gives_one_clear_error",
              "tests/test_real_backends.py::test_missing_packages_and_weights_give_clear_errors",
@@ -444,8 +446,8 @@ MUTANTS = {
         ('    return family_scores(pairs, judgments, "task", lambda p: "D wrong" if p.error else "D right")',
          '    return family_scores(pairs, judgments, "task", lambda p: "D right" if p.error else "D wrong")',
          'D right and D wrong swapped'),
-        ('    return family_scores(pairs, judgments, "agent", lambda p: "first-person view"',
-         '    return family_scores(pairs, judgments, "task", lambda p: "first-person view"',
+        ('    return family_scores(pairs, judgments, "agent", group)',
+         '    return family_scores(pairs, judgments, "task", group)',
          'Fig. 7 right on the task score'),
         ('            c_D = model.condition(frame0, [p.d_vlm for p in ps])',
          '            c_D = model.condition(frame0, [p.d_oracle for p in ps])',
@@ -575,6 +577,39 @@ MUTANTS = {
          "Fig. 7's table per seed giving the seeds in the wrong order"),
         ('f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1]})"', 'f"{subgroup_score(c):.3f} ({c[0]:g}/{c[1] + 1})"',
          "Fig. 7's table per seed writing a count that is not the score's"),
+    ]),
+    "world.py (taxonomy)": ([TAXONOMY, "tests/test_real_backends.py::test_task_solution_parsing_and_the_dataset_file"], [
+        ('            row[key] = None if k is None else options[k]',
+         '            row[key] = None if k is None else options[k - 1]', "the taxonomy's answer read one category off"),
+        ('                                  options="\\n".join(f"{k}. {o}" for k, o in enumerate(options, 1)))',
+         '                                  options="\\n".join(f"{k}. {o}" for k, o in enumerate(options)))',
+         "the taxonomy's options numbered from 0, where the answer is read from 1"),
+        ('    if all("agent_type" in r and "task_type" in r for rows in splits.values() for r in rows):',
+         '    if all("agent_type" in r and "task_type" in r for rows in list(splits.values())[1:] for r in rows):',
+         "Fig. 3 by the taxonomy where the first split has none"),
+        ('                agent[r["agent_type"] or UNCLASSIFIED] += 1',
+         '                agent[r["agent_type"] or "crowd"] += 1', "Fig. 3 counting a malformed answer as a crowd"),
+        ('                    if r.get(key) is not None and r[key] not in options:',
+         '                    if r.get(key) is not None and r[key] not in AGENT_TAXONOMY + TASK_TAXONOMY:',
+         "a task type accepted as an agent category"),
+        ('    counts["taxonomy malformed"] = sum(None in (r["agent_type"], r["task_type"]) for r in rows)',
+         '    counts["taxonomy malformed"] = sum(r["agent_type"] is None for r in rows)',
+         "a malformed task type not counted"),
+    ]),
+    "reward.py (taxonomy)": ([TAXONOMY], [
+        ('        digits = [vocab.get(str(k)) for k in range(1, n + 1)]',
+         '        digits = [vocab.get(str(k)) for k in range(n)]', "choose reading the options' numbers from 0"),
+        ('            out.append(digits.index(top) if top in digits else None)',
+         '            out.append(digits.index(top) if top in digits else 0)', "a malformed answer taken as the first"),
+        ('        if not 1 <= n <= 9:', '        if not 1 <= n <= 10:', "choose taking a two-digit option list"),
+    ]),
+    "train.py (Fig. 7 by the taxonomy)": ([TAXONOMY], [
+        ('        family, agent_type = row["task_type"] or world.UNCLASSIFIED,',
+         '        family, agent_type = row.get("family") or world.task_family(row["task"]),',
+         "Fig. 7's task score by keyword family where the taxonomy is given"),
+    ]),
+    "bench.py (Fig. 7 by the taxonomy)": ([TAXONOMY], [
+        ('        if getattr(p.task, "agent_type", None):', '        if False:', "Fig. 7's agent score ignoring the taxonomy"),
     ]),
     "train.py (step)": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',

@@ -758,6 +758,9 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
         def generate(self, images, prompt):
             return [answer] * len(images)
 
+        def choose(self, prompts, n):
+            return [0] * len(prompts)
+
     from PIL import Image
     checker = (np.indices((64, 64)).sum(0) % 2 * 200 + 30).astype(np.uint8)[..., None].repeat(3, -1)
     paths = []
@@ -772,6 +775,7 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     assert counts.get("underexposed", 0) + counts.get("blurry", 0) == 1
     rows = world.load_dataset(str(tmp_path / "wt.jsonl"))
     assert rows[0]["agent"] == "Driver in racing suit" and rows[1]["family"] == "positioning"
+    assert [(r["agent_type"], r["task_type"]) for r in rows] == [("first-person view", "positioning")] * 2
     # a bad line: one clear error naming the file and line, from the loader and from train.py
     lines = (tmp_path / "wt.jsonl").read_text().splitlines()
     (tmp_path / "bad.jsonl").write_text(lines[0] + "\n" + '{"image": "0.png", "task": "press it"}' + "\n")
@@ -788,6 +792,79 @@ def test_task_solution_parsing_and_the_dataset_file(tmp_path):
     judge = reward.VLMJudge.tiny(["press"])
     assert isinstance(judge.generate([checker], "Propose tasks", max_new_tokens=3)[0], str)
     assert len(judge.yes_no([checker, checker], world.SUITABILITY_PROMPT)) == 2
+
+
+def test_the_prompt_only_taxonomy_labels_rows_and_groups_fig_3_and_fig_7(tmp_path):
+    """Sec. 4.1.2: make_worldtasks labels each row's agent and task type by asking the VLM T alone, a numbered list of
+    the paper's categories; a malformed answer is kept as null and counted. Fig. 3 (dataset_composition) and Fig. 7
+    (train.task_groups -> bench's subgroups) then count the paper's categories; a file without them keeps the
+    bracket names and keywords. VLMJudge.choose reads the first answer token as an option's number."""
+    tasks = ["[First-person view]: Turn left to face the door.", "[Red car]: Park beside the curb.",
+             "[Knight]: Strike the dragon."]
+
+    class VLM:      # keeps every image; answers by the agent in the prompt's task; two answers malformed
+        asked = []      # every prompt choose was given
+
+        def yes_no(self, images, prompt):
+            return [True] * len(images)
+
+        def generate(self, images, prompt):
+            return ["".join(f"{k}. Task {k}: {t}\nDescription {k}: it happens.\n" for k, t in enumerate(tasks, 1))]
+
+        def choose(self, prompts, n):
+            self.asked += prompts
+            out = []
+            for p in prompts:
+                task = p.split("Task: ")[1].split("\n")[0]
+                if n == len(world.AGENT_TAXONOMY):
+                    out.append({"F": 0, "R": 2}.get(task[1]))           # the knight: malformed
+                else:
+                    out.append({"F": 3, "K": 4}.get(task[1]))            # the car: malformed
+            return out
+
+    checker = (np.indices((64, 64)).sum(0) % 2 * 200 + 30).astype(np.uint8)[..., None].repeat(3, -1)
+    Image.fromarray(checker).save(tmp_path / "0.png")
+    vlm = VLM()
+    counts = world.make_worldtasks([str(tmp_path / "0.png")], vlm, str(tmp_path / "wt.jsonl"))
+    assert counts["pairs"] == 3 and counts["taxonomy malformed"] == 2
+    assert len(vlm.asked) == 6 and "Task: [Red car]: Park beside the curb.\n" in vlm.asked[1]
+    assert "\n1. first-person view\n2. human character\n" in vlm.asked[0] and "\n9. other\n" in vlm.asked[5]
+    rows = world.load_dataset(str(tmp_path / "wt.jsonl"))
+    assert [(r["agent_type"], r["task_type"]) for r in rows] == [
+        ("first-person view", "perception"), ("vehicle", None), (None, "combat action")]
+    comp = world.dataset_composition({"train": rows})["train"]
+    assert list(comp["agent"]) == [*world.AGENT_TAXONOMY, "unclassified"]
+    assert comp["agent"]["vehicle"] == 1 and comp["agent"]["unclassified"] == 1 and sum(comp["agent"].values()) == 3
+    assert comp["task"]["combat action"] == 1 and comp["task"]["unclassified"] == 1 and sum(comp["task"].values()) == 3
+    groups = [train.task_groups(r) for r in rows]
+    assert [(g["family"], g["agent_type"]) for g in groups] == [
+        ("perception", "first-person view"), ("unclassified", "vehicle"), ("combat action", "unclassified")]
+    pairs = [SimpleNamespace(task=SimpleNamespace(**g)) for g in groups]
+    yes = [{"task": reward.Judgment(k != 1, 0.0, ""), "agent": reward.Judgment(k == 1, 0.0, "")} for k in range(3)]
+    import bench
+    assert bench.agent_type_scores(pairs, yes) == {"first-person view": [0, 1], "unclassified": [0, 1],
+                                                   "vehicle": [1, 1]}
+    assert bench.family_scores(pairs, yes) == {"combat action": [1, 1], "perception": [1, 1], "unclassified": [0, 1]}
+    # without the taxonomy: the bracket names and the keyword families, as before
+    plain = [{k: v for k, v in r.items() if k not in ("agent_type", "task_type")} for r in rows]
+    assert "red car" in world.dataset_composition({"train": plain})["train"]["agent"]
+    assert train.task_groups(plain[1])["agent_type"] is None
+    # a category not in the taxonomy (here a task type given as the agent's): one error naming the line
+    lines = (tmp_path / "wt.jsonl").read_text().splitlines()
+    (tmp_path / "bad.jsonl").write_text(lines[0] + "\n" + lines[1].replace('"vehicle"', '"navigation"') + "\n")
+    with pytest.raises(ValueError, match=r"bad.jsonl line 2: agent_type 'navigation' is not one of"):
+        world.load_dataset(str(tmp_path / "bad.jsonl"))
+    # the VLM's side: the first answer token as a number, text only (the tiny Qwen3-VL's forward without an image)
+    judge = reward.VLMJudge.tiny([])
+    lg = judge.logits(None, [world.taxonomy_prompt(t, "agent_type") for t in tasks])
+    assert lg.shape == (3, len(judge.tokenizer.get_vocab())) and np.isfinite(lg).all()
+    vocab = judge.tokenizer.get_vocab()
+    crafted = np.zeros((3, len(vocab)))
+    crafted[0, vocab["3"]], crafted[1, vocab["Yes"]], crafted[2, vocab["7"]] = 1, 1, 1
+    judge.logits = lambda videos, prompts: crafted
+    assert judge.choose(["a", "b", "c"], 7) == [2, None, 6] and judge.choose(["a", "b", "c"], 6) == [2, None, None]
+    with pytest.raises(ValueError, match="1 to 9"):
+        judge.choose(["a"], 10)
 
 
 def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
