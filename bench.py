@@ -206,11 +206,12 @@ def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
              steps: int = 10, judge=None, batch: int = 200, pairs: list | None = None,
-             guidance: float = 1.0) -> tuple[dict, np.ndarray, list]:
+             guidance: float = 1.0, pick=None) -> tuple[dict, np.ndarray, list]:
     """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
     Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch), with classifier-free guidance
     w = `guidance` (1: none; flow.guided_field). The bench is the toy one, or `pairs` (a real-image bench,
-    train.load_bench). Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+    train.load_bench). With `pick` (a reward.PickScore) the result also holds "pick", the videos' mean PickScore
+    against T, Fig. 4's quality measure. Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
     pairs = (world.bench_pairs(error_rate) if pairs is None else pairs)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
@@ -228,6 +229,8 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
                kinds=kind_scores(pairs, judgments), by_vlm_error=vlm_error_scores(pairs, judgments),
                faults=consistency_faults(judgments), still=still_videos(videos) / max(len(pairs), 1))
+    if pick is not None:
+        res["pick"] = float(np.mean(pick(videos, [p.task.text for p in pairs])))
     return res, videos, pairs
 
 

@@ -296,6 +296,15 @@ def judgment_from_logits(logits: np.ndarray, yes_id: int, no_id: int) -> Judgmen
     return Judgment(score > 0, score, "VLM")
 
 
+def video_frames(video, n: int) -> list:
+    """n evenly spaced frames of a video (F, H, W, 3), the first and the last among them, as PIL images: what the
+    VLM judge and PickScore see of it."""
+    from PIL import Image
+    v = np.asarray(video)
+    idx = np.linspace(0, len(v) - 1, min(n, len(v))).round().astype(int)
+    return [Image.fromarray(np.clip(v[i], 0, 255).astype(np.uint8)) for i in idx]
+
+
 class VLMJudge:
     """A Qwen3-VL / Qwen3.5 judge through transformers, batched, with the paper's prompts. Frames go in as images
     (Qwen2VLImageProcessorPil: transformers' Qwen3VLProcessor needs torchvision, which this CPU machine cannot
@@ -415,10 +424,7 @@ class VLMJudge:
         models.offload(self.model)
 
     def _frames(self, video) -> list:
-        from PIL import Image
-        v = np.asarray(video)
-        idx = np.linspace(0, len(v) - 1, min(self.frames, len(v))).round().astype(int)
-        return [Image.fromarray(np.clip(v[i], 0, 255).astype(np.uint8)) for i in idx]
+        return video_frames(video, self.frames)
 
     @staticmethod
     def _chat(image_tokens: list[int], prompt: str) -> str:
@@ -519,3 +525,83 @@ class VLMJudge:
                                      for t, (a, i) in zip(tasks, parts)], "1", "0")
         cons = self._judge(videos, [BENCH_CONSISTENCY_PROMPT] * len(videos), "1", "0")
         return [{"task": a, "agent": b, "consistency": c} for a, b, c in zip(task, agent, cons)]
+
+
+class PickScore:
+    """PickScore [35] (Kirstain et al. 2023): Table 3's third training reward of the LTX-2 setting ("multi
+    (task/consistency/pick)", weight 0.225; train.py --pick) and Fig. 4's measure of generation quality. A CLIP model
+    fine-tuned on human preferences scores an image x against a prompt p as
+
+        s(x, p) = exp(logit_scale) cos(E_image(x), E_text(p)),
+
+    as its authors' code does. A video's score is the mean over `frames` evenly spaced frames, against the task T the
+    Executor was given: both ours, the paper says neither. Weights from local directories, nothing downloaded: the
+    model (yuvalkirstain/PickScore_v1, a CLIP-H/14) and the processor it was trained with
+    (laion/CLIP-ViT-H-14-laion2B-s32B-b79K). Images go through CLIPImageProcessorPil (CLIPProcessor needs
+    torchvision, which this CPU machine cannot load)."""
+
+    def __init__(self, model, tokenizer, image_processor, frames: int = 4, batch: int = 16, device=None):
+        self.model, self.tokenizer, self.image_processor = model.eval(), tokenizer, image_processor
+        self.frames, self.batch = frames, batch
+        self.device = model.device if device is None else device
+
+    @classmethod
+    def from_pretrained(cls, path: str, processor_path: str = "", **settings):
+        """The model from `path` and its tokenizer and image processor from `processor_path` (default: `path`)."""
+        import os
+
+        import models
+        models._require("transformers")
+        from transformers import AutoTokenizer, CLIPImageProcessorPil, CLIPModel
+        proc = processor_path or path
+        for what, p, file in (("model", path, "config.json"), ("processor", proc, "preprocessor_config.json")):
+            if not os.path.isfile(os.path.join(p, file)):
+                raise FileNotFoundError(f"PickScore {what} not found at {p!r}: no {file} (a local transformers "
+                                        f"directory is needed; nothing is downloaded)")
+        return cls(CLIPModel.from_pretrained(path), AutoTokenizer.from_pretrained(proc),
+                   CLIPImageProcessorPil.from_pretrained(proc), **settings)
+
+    @classmethod
+    def tiny(cls, words: list[str], seed: int = 0):
+        """A random-weight CLIPModel of the real class for CPU tests (width 16, one layer each side, 32-px images),
+        with a word-level tokenizer that, like CLIP's, wraps the text in start and end tokens (the text embedding is
+        read at the end token)."""
+        import torch
+        from tokenizers.processors import TemplateProcessing
+        from transformers import CLIPConfig, CLIPImageProcessorPil, CLIPModel
+
+        import models
+        tok = models.word_tokenizer(words, ("<pad>", "<|startoftext|>", "<|endoftext|>", "<unk>"), punctuation=True,
+                                    pad_token="<pad>", bos_token="<|startoftext|>", eos_token="<|endoftext|>",
+                                    unk_token="<unk>")
+        tok.backend_tokenizer.post_processor = TemplateProcessing(
+            single="<|startoftext|> $A <|endoftext|>", special_tokens=[("<|startoftext|>", 1), ("<|endoftext|>", 2)])
+        torch.manual_seed(seed)
+        cfg = CLIPConfig(text_config=dict(vocab_size=len(tok.get_vocab()), hidden_size=16, intermediate_size=32,
+                                          num_hidden_layers=1, num_attention_heads=2, max_position_embeddings=77,
+                                          bos_token_id=1, eos_token_id=2, pad_token_id=0),
+                         vision_config=dict(hidden_size=16, intermediate_size=32, num_hidden_layers=1,
+                                            num_attention_heads=2, image_size=32, patch_size=8),
+                         projection_dim=8)
+        proc = CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32})
+        return cls(CLIPModel(cfg), tok, proc, frames=2, batch=4)
+
+    def __call__(self, videos, prompts: list[str]) -> np.ndarray:
+        """s(x, p) averaged over each video's frames: videos (N, F, H, W, 3) uint8, prompts N strings -> (N,)."""
+        import torch
+
+        import models
+        out = []
+        with torch.no_grad(), models.visiting(self.model, self.device):
+            dev = self.model.device
+            for s in range(0, len(prompts), self.batch):
+                vids, ps = videos[s:s + self.batch], prompts[s:s + self.batch]
+                frames = [f for v in vids for f in video_frames(v, self.frames)]
+                pix = self.image_processor(images=frames, return_tensors="pt").pixel_values
+                txt = self.tokenizer(ps, padding=True, truncation=True, max_length=77, return_tensors="pt")
+                o = self.model(input_ids=txt.input_ids.to(dev), attention_mask=txt.attention_mask.to(dev),
+                               pixel_values=pix.to(dev, self.model.dtype))
+                img = o.image_embeds.float().view(len(ps), -1, o.image_embeds.shape[-1])    # unit vectors
+                cos = (img * o.text_embeds.float()[:, None]).sum(-1).mean(1)
+                out.append((self.model.logit_scale.exp().float() * cos).cpu().numpy())
+        return np.concatenate(out) if out else np.zeros(0)

@@ -224,6 +224,18 @@ class Args:
     qwen-vl-random (Qwen3-VL-8B's real sizes, random weights, on a GPU: a judgment's seconds and memory)"""
     judge_path: str = ""
     """--judge qwen-vl: a local transformers directory of the VLM"""
+    pick: str = "none"
+    """Table 3's PickScore reward, the LTX-2 setting's third ("multi (task/consistency/pick)"; reward.PickScore),
+    weighed by --lambda_pick and recorded in each evaluation (Fig. 4's quality measure): none | pickscore (from
+    --pick_path) | pickscore-tiny (random weights of the real class, for checks)"""
+    pick_path: str = ""
+    """--pick pickscore: a local transformers directory of PickScore (yuvalkirstain/PickScore_v1), and of its tokenizer
+    and image processor unless --pick_processor_path gives them"""
+    pick_processor_path: str = ""
+    """--pick pickscore: a local directory of PickScore's tokenizer and image processor
+    (laion/CLIP-ViT-H-14-laion2B-s32B-b79K); empty: --pick_path"""
+    lambda_pick: float = 0.0
+    """Eq. 10 with Table 3's third reward: weight of PickScore (the LTX-2 column: 0.225); needs --pick"""
     offload_judge: bool = False
     """a VLM judge: keep its weights in CPU memory and copy them to the GPU each time it judges a set of videos, so that they
     are not on the GPU during the update, where a step peaks (Qwen3-VL-8B: 16.3 GiB); the same judgments"""
@@ -333,7 +345,8 @@ READ_BY = {
                      "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
                      "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every", "executor_ema_schedule",
                      "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting", "ghuber_power",
-                     "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume", "executor_update"),
+                     "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume", "executor_update",
+                     "pick", "pick_path", "pick_processor_path", "lambda_pick"),
                     ("rl",)),
     "stage": (), "toy": (),
 }
@@ -348,10 +361,11 @@ TRAINER_READS = {**dict.fromkeys(("clip_range", "kl_beta"), ("flow-grpo", "awm")
 def reward_weights(args: Args) -> tuple:
     """The Eq. 10 weights (--lambda_*) an rl run reads: WMSD's Executor rounds weigh all three; Alg. 2's Demonstrator
     rounds weigh r_task and r_cons (beside off-policy Executor rounds, Fig. 5 (iii), they are all that is weighed);
-    off-policy Executor rounds alone judge and weigh nothing."""
+    off-policy Executor rounds alone judge and weigh nothing. Either kind of round weighs PickScore too with --pick."""
+    pick = ("lambda_pick",) if args.pick != "none" else ()      # Table 3's PickScore, where --pick gives one
     if args.executor_update == "wmsd":
-        return "lambda_task", "lambda_distill", "lambda_cons"
-    return ("lambda_task", "lambda_cons") if args.alternate else ()
+        return "lambda_task", "lambda_distill", "lambda_cons", *pick
+    return ("lambda_task", "lambda_cons", *pick) if args.alternate else ()
 
 
 def unread_flags(args: Args) -> list:
@@ -374,6 +388,9 @@ def unread_flags(args: Args) -> list:
         ("model_path", "--model ltx2 or hunyuan15 (real weights)", f"--model {args.model}",
          args.model not in REAL_MODELS),
         ("judge_path", "--judge qwen-vl (real weights)", f"--judge {args.judge}", args.judge != "qwen-vl"),
+        *((name, "--pick pickscore (real weights)", f"--pick {args.pick}", args.pick != "pickscore")
+          for name in ("pick_path", "pick_processor_path")),
+        ("pick", "--lambda_pick > 0 (PickScore's weight)", "--lambda_pick 0", args.lambda_pick == 0),
         ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
         ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
         ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema),
@@ -384,7 +401,7 @@ def unread_flags(args: Args) -> list:
         *((name, "RL rounds (--executor_update wmsd, or --alternate N's Demonstrator rounds)",
            "--executor_update off without --alternate", not judged)
           for name in ("trainer", *TRAINER_READS, "sampler", "lambda_task", "lambda_cons", "task_reward", "adv_agg",
-                       "adv_clip")),
+                       "adv_clip", "lambda_pick")),
         *((name, "--executor_update wmsd (Eq. 12's rounds)", "--executor_update off", off)
           for name in ("lambda_distill", "distill_reward", "beta_d", "inner_epochs")),
         ("task_reward", "--lambda_task > 0 (r_task's weight)", "--lambda_task 0", args.lambda_task == 0)]
@@ -466,11 +483,11 @@ def parse_args(argv=None) -> Args:
                           ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
                           ("model", models.MODEL_CHOICES),
-                          ("judge", reward.JUDGE_CHOICES)):
+                          ("judge", reward.JUDGE_CHOICES), ("pick", PICK_CHOICES)):
         if getattr(args, name) not in allowed:
             p.error(f"--{name}: unknown {getattr(args, name)!r}; choose from {', '.join(allowed)}")
-    for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "kl_beta", "adv_clip",
-                 "clip_range", "alternate", "weight_decay", "loss_power", "noise_level"):
+    for name in ("beta_d", "beta_phi", "lambda_task", "lambda_distill", "lambda_cons", "lambda_pick", "kl_beta",
+                 "adv_clip", "clip_range", "alternate", "weight_decay", "loss_power", "noise_level"):
         if getattr(args, name) < 0:
             p.error(f"--{name} must be >= 0, got {getattr(args, name)}")
     for name in ("lr", "pretrain_lr", "lora_alpha", "ghuber_power", "nft_beta", "motion_weight",
@@ -497,6 +514,10 @@ def parse_args(argv=None) -> Args:
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if args.pick == "pickscore" and not args.pick_path:
+        p.error("--pick pickscore needs --pick_path (a local directory of PickScore; nothing is downloaded)")
+    if args.lambda_pick > 0 and args.pick == "none":
+        p.error("--lambda_pick weighs PickScore: it needs --pick pickscore (or pickscore-tiny)")
     if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
         p.error("--model and --judge other than toy are wired into the rl stage only")
     if args.state_window:
@@ -765,9 +786,14 @@ def _batch(pairs: list, idx, executor_prompt: str = "task") -> tuple:
 EVAL_KEYS = ("task", "agent", "consistency", "avg", "still")
 
 
+def eval_keys(res: dict) -> tuple:
+    """EVAL_KEYS, and PickScore's mean where the evaluation has one (--pick: Fig. 4's quality measure)."""
+    return (*EVAL_KEYS, "pick") if "pick" in res else EVAL_KEYS
+
+
 def eval_line(res: dict) -> str:
     """One evaluation as a progress line."""
-    return " ".join(f"{k} {res[k]:.3f}" for k in EVAL_KEYS)
+    return " ".join(f"{k} {res[k]:.3f}" for k in eval_keys(res))
 
 
 def eval_pairs(args: Args) -> list:
@@ -791,7 +817,7 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE,
-                                        batch=args.micro_batch or 200, pairs=eval_pairs(args))
+                                        batch=args.micro_batch or 200, pairs=eval_pairs(args), pick=PICK)
     return res
 
 
@@ -800,7 +826,7 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     VLM's D. The bench is deterministic (noise seed 0), so with --eval_cache the result is computed once per
     (base file, settings) and read back by every later run -- the report's 33 runs would otherwise repeat it 66
     times."""
-    if not args.eval_cache or args.model != "toy":
+    if not args.eval_cache or args.model != "toy" or PICK is not None:
         return evaluate_executor(model, args, demonstrator)
     key = {"base": bench.file_digest(args.init or models.SHIPPED_BASE), "demonstrator": demonstrator,
            **({} if demonstrator or args.executor_prompt == "task" else {"executor_prompt": args.executor_prompt}),
@@ -904,8 +930,8 @@ def distill_stage(args: Args) -> dict:
     base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
     # the toy benches and judges only (--eval_dataset and --judge are the rl stage's), whatever an rl run before it in
     # this process set
-    global BENCH, JUDGE
-    BENCH, JUDGE = None, None
+    global BENCH, JUDGE, PICK
+    BENCH, JUDGE, PICK = None, None, None
     seed_everything(args.seed, args.threads)
     os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()
@@ -1013,6 +1039,23 @@ def make_judge(args: Args):
     return judge
 
 
+PICK = None
+"""This run's PickScore (reward.PickScore), set by rl_stage from --pick; None: no PickScore."""
+PICK_CHOICES = ("none", "pickscore", "pickscore-tiny")
+
+
+def make_pick(args: Args):
+    """--pick's reward.PickScore, on this process's GPU when there is one (beside the video model and the judge)."""
+    if args.pick == "none":
+        return None
+    pick = (reward.PickScore.tiny(world.VOCAB + ["[", "]:"], seed=args.seed) if args.pick == "pickscore-tiny" else
+            reward.PickScore.from_pretrained(args.pick_path, args.pick_processor_path))
+    if torch.cuda.is_available():
+        pick.model.to("cuda")
+        pick.device = pick.model.device
+    return pick
+
+
 TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_task | reward.judge_task_reward
 
 
@@ -1032,8 +1075,9 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end
     """Alg. 1 line 6: the judges' graded scores of each rollout as rewards (the toy judges' margins, or a VLM's
     log p(yes) - log p(no)). Where no judgment is possible -- a malformed video or answer, a missing agent, or a judge
     that raises -- the score is NaN: rl.advantages skips that rollout and the log counts it (paper Tab. 4); a judge
-    failure never stops the run. task_reward picks the toy r_task (--task_reward). Returns {"task", "consistency",
-    "solved", "invalid", "judge_errors"}: (N,)."""
+    failure never stops the run. task_reward picks the toy r_task (--task_reward). With --pick, PickScore against T
+    (reward.PickScore; Table 3's third reward), NaN where it fails. Returns {"task", "consistency", "pick" (0 without
+    --pick), "solved", "invalid", "judge_errors"}: (N,)."""
     n = len(tasks)
     if JUDGE is not None:                       # a VLM, batched; a failing batch is counted and skipped
         errors = [0] * n
@@ -1062,12 +1106,18 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end
             jts.append(jt)
             jcs.append(jc)
             errors.append(e)
-    out = {"task": [np.nan if j.score is None else j.score for j in jts],
+    pick = np.zeros(n)
+    if PICK is not None:
+        try:
+            pick = PICK(videos, tasks)
+        except Exception:  # noqa: BLE001
+            pick, errors = np.full(n, np.nan), [e + 1 for e in errors]
+    out = {"task": [np.nan if j.score is None else j.score for j in jts], "pick": pick,
            "consistency": [np.nan if j.score is None else j.score for j in jcs],
            "solved": [np.nan if a.yes is None else float(a.yes and bool(b.yes)) for a, b in zip(jts, jcs)],
            "judge_errors": errors}
     res = {k: torch.tensor(v, dtype=torch.float32) for k, v in out.items()}
-    res["invalid"] = torch.isnan(res["task"]) | torch.isnan(res["consistency"])
+    res["invalid"] = torch.isnan(res["task"]) | torch.isnan(res["consistency"]) | torch.isnan(res["pick"])
     return res
 
 
@@ -1270,10 +1320,11 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
             local["distill"] = distill.distill_reward_to_go(terms)
     # every reward lives on the CPU beside the judges' (advantages are computed there, then sent to the device)
     rewards = {k: _gather(v) for k, v in local.items()}
-    for k in ("task", "consistency"):
+    for k in ("task", "consistency", "pick"):
         _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
     _check_finite(step, "reward r_distill", rewards["distill"])
-    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
+    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons,
+               "pick": args.lambda_pick}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "advantage", A_all)
     A = A_all[rows].to(b.x_0.device)
@@ -1295,6 +1346,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     return {"loss": _mean_over_processes(loss), "l_rl": _mean_over_processes(l_rl),
             "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor),
             "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
+            **({"r_pick": _mean(rewards["pick"])} if PICK is not None else {}),
             "r_distill": float(rewards["r_distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
             "adv_abs": float(A_all.abs().mean()),
@@ -1319,7 +1371,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     parts = _parts(demo, b, args, executor=False)
     judged = judge_rollouts(_sample_parts(demo, parts, b, args, "c_D"), b.tasks, args.task_reward)
     rewards = {k: _gather(v) for k, v in judged.items()}
-    weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
+    weights = {"task": args.lambda_task, "consistency": args.lambda_cons, "pick": args.lambda_pick}
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
     A = A_all[b.rows].to(b.x_0.device)
@@ -1332,7 +1384,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     loss, gnorm, _ = _update(step, opt, params, parts, alg2, gen, "Demonstrator")
     return {"demo_round": True, "loss": _mean_over_processes(loss), "grad_norm": gnorm,
             "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
-            "solved": _mean(rewards["solved"])}
+            **({"r_pick": _mean(rewards["pick"])} if PICK is not None else {}), "solved": _mean(rewards["solved"])}
 
 
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------
@@ -1496,16 +1548,16 @@ def rl_stage(args: Args) -> dict:
         refuse_to_overwrite(state_path)
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
-    global JUDGE, BENCH
+    global JUDGE, BENCH, PICK
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
-    JUDGE = make_judge(args)
+    JUDGE, PICK = make_judge(args), make_pick(args)
     pairs = load_pairs(args, model)
     BENCH = load_bench(args, model, pairs)
     if BENCH is None and args.model != "toy":
         say("note: no --eval_dataset, so this real model is evaluated on the toy bench's sprite frames", flush=True)
     if rank0:
         os.makedirs(args.run_dir, exist_ok=True)
-    keys = (*EVAL_KEYS, "seconds_per_video")
+    keys = (*EVAL_KEYS, *(("pick",) if PICK is not None else ()), "seconds_per_video")
     given = EXECUTOR_PROMPTS[args.executor_prompt]
     base_row = f"Base ({given})"
     if state is not None:
@@ -1551,7 +1603,7 @@ def rl_stage(args: Args) -> dict:
         say(f"resumed {state_path} at step {first - 1}")
     elif rank0:
         base_T = fixed[base_row]
-        evals = [{"step": 0, **{k: base_T[k] for k in EVAL_KEYS}}]
+        evals = [{"step": 0, **{k: base_T[k] for k in eval_keys(base_T)}}]
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
         say(f"{len(pairs)} training pairs{' on crowded scenes' if args.train_crowded else ''}; {_world()} "
@@ -1592,7 +1644,7 @@ def rl_stage(args: Args) -> dict:
             logf.write(json.dumps(rec) + "\n")
             logf.flush()
         what = ("Demonstrator round | " if rec.get("demo_round") else "") + " ".join(
-            f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_distill") if k in rec) + (
+            f"{k} {rec[k]:+.3f}" for k in ("r_task", "solved", "r_cons", "r_pick", "r_distill") if k in rec) + (
             f" still {rec['still']}" if "still" in rec else "")
         say(f"step {step:4d}/{args.steps} | {what} | loss {rec['loss']:+.4f} grad {rec['grad_norm']:.2f} | "
             f"{rec['step_seconds']:.1f} s" + (f" ({rec['sample_s']:.1f} sampling, {rec['reward_s']:.1f} rewards, "
@@ -1603,7 +1655,7 @@ def rl_stage(args: Args) -> dict:
             if rank0:
                 with weights_swapped(params, ema):
                     res = evaluate_executor(model, args)
-                evals.append({"step": step, **{k: res[k] for k in EVAL_KEYS}})
+                evals.append({"step": step, **{k: res[k] for k in eval_keys(res)}})
                 logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
                 say(f"  eval step {step}: {eval_line(res)}", flush=True)
             if dist.is_initialized():
@@ -1626,7 +1678,8 @@ def rl_stage(args: Args) -> dict:
             models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
         final = evaluate_executor(merged, args)     # the last point of the curve too: the same network, merged
         write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
-    evals = [e for e in evals if e["step"] != args.steps] + [{"step": args.steps, **{k: final[k] for k in EVAL_KEYS}}]
+    evals = ([e for e in evals if e["step"] != args.steps]
+             + [{"step": args.steps, **{k: final[k] for k in eval_keys(final)}}])
     logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
     logf.close()
     say(f"  eval step {args.steps}: {eval_line(final)}", flush=True)
@@ -1637,10 +1690,13 @@ def rl_stage(args: Args) -> dict:
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
     if BENCH is not None:   # the Demonstrator's D is the bench file's, written by whatever VLM made it
         rows = {name.replace("toy VLM's D", "the bench file's D"): r for name, r in rows.items()}
-    table = ["| model | task | agent | consistency | avg | still | s/video |", "|---|---|---|---|---|---|---|"]
+    pick = PICK is not None      # PickScore's column (Fig. 4's quality measure)
+    table = [f"| model | task | agent | consistency | avg | still |{' pick |' if pick else ''} s/video |",
+             "|---|---|---|---|---|---|---|" + ("---|" if pick else "")]
     table += [f"| {name} | {r['task']:.3f} | {r['agent']:.3f} | {r['consistency']:.3f} | {r['avg']:.3f} | "
-              f"{r.get('still', float('nan')):.3f} | {r['seconds_per_video']:.4f} |"   # nan: a state saved before
-              for name, r in rows.items()]                                             # the still count existed
+              f"{r.get('still', float('nan')):.3f} |"                         # nan: a state saved before the still
+              + (f" {r['pick']:.3f} |" if pick else "") + f" {r['seconds_per_video']:.4f} |"   # count existed
+              for name, r in rows.items()]
     summary = {"args": dataclasses.asdict(args), "evals": evals, "minutes": (time.time() - start) / 60,
                "table": rows}
     with open(os.path.join(args.run_dir, "rl_summary.json"), "w") as f:

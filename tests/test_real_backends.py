@@ -867,6 +867,66 @@ def test_the_prompt_only_taxonomy_labels_rows_and_groups_fig_3_and_fig_7(tmp_pat
         judge.choose(["a"], 10)
 
 
+def test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward(tiny_ckpt, tmp_path):
+    """reward.PickScore: exp(logit_scale) cos(E_image, E_text), averaged over a video's frames read, checked against
+    CLIPModel's own feature functions; the same scores batched or one at a time; weights from local directories, a
+    clear error where there are none. In train.py it is Table 3's third reward: a run that weighs PickScore alone
+    (every other weight 0) learns from it, and logs it and each evaluation's mean."""
+    import torch.nn.functional as F
+    pick = reward.PickScore.tiny(world.VOCAB + ["[", "]:"])
+    pairs = world.make_pairs(3, seed=1, error_rate=0.0)
+    videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in pairs])
+    tasks = [p.task.text for p in pairs]
+    s = pick(videos, tasks)
+    m = pick.model
+    with torch.no_grad():
+        e_t = m.get_text_features(**pick.tokenizer(tasks, padding=True, return_tensors="pt")).pooler_output
+        frames = [f for v in videos for f in reward.video_frames(v, 2)]      # the tiny reads 2: the first and last
+        pix = pick.image_processor(images=frames, return_tensors="pt").pixel_values
+        e_i = m.get_image_features(pixel_values=pix).pooler_output
+    cos = (F.normalize(e_i, dim=-1).view(3, 2, -1) * F.normalize(e_t, dim=-1)[:, None]).sum(-1)
+    assert np.allclose(s, (m.logit_scale.exp() * cos.mean(1)).detach().numpy(), atol=1e-5)
+    assert np.allclose(np.concatenate([pick(videos[i:i + 1], tasks[i:i + 1]) for i in range(3)]), s, atol=1e-5)
+    assert not np.allclose(pick(videos, tasks[::-1]), s, atol=1e-3)          # the prompt counts
+    still = videos.copy()
+    still[:, -1] = videos[:, 0]
+    assert not np.allclose(pick(still, tasks), s, atol=1e-3)                 # and so does the last frame
+    m.save_pretrained(tmp_path / "pick")
+    pick.tokenizer.save_pretrained(tmp_path / "proc")
+    pick.image_processor.save_pretrained(tmp_path / "proc")
+    assert np.allclose(reward.PickScore.from_pretrained(str(tmp_path / "pick"), str(tmp_path / "proc"), frames=2)(
+        videos, tasks), s, atol=1e-5)
+    with pytest.raises(FileNotFoundError, match="PickScore model not found at"):
+        reward.PickScore.from_pretrained(str(tmp_path / "nothing"))
+    with pytest.raises(FileNotFoundError, match="PickScore processor not found at"):
+        reward.PickScore.from_pretrained(str(tmp_path / "pick"))          # no processor beside the model
+    # the step's rewards: PickScore of each rollout against its T; one that fails is counted and skipped
+    train.PICK = pick
+    try:
+        judged = train.judge_rollouts(videos, tasks)
+        assert np.allclose(judged["pick"].numpy(), s, atol=1e-5) and not judged["invalid"].any()
+
+        def broken(videos, prompts):
+            raise RuntimeError("out of memory")
+        train.PICK = broken
+        judged = train.judge_rollouts(videos, tasks)
+        assert judged["invalid"].all() and judged["judge_errors"].tolist() == [1, 1, 1]
+    finally:
+        train.PICK = None
+    d = tmp_path / "run"
+    r = run("train.py", "--toy", "--init", tiny_ckpt, "--steps", "2", "--eval_every", "1", "--eval_n", "4",
+            "--train_pairs", "8", "--sample_steps", "3", "--group_size", "4", "--tasks_per_step", "2", "--threads", "1",
+            "--pick", "pickscore-tiny", "--lambda_pick", "1", "--lambda_task", "0", "--lambda_cons", "0",
+            "--lambda_distill", "0", "--beta_d", "0", "--run_dir", str(d))
+    assert r.returncode == 0, r.stderr
+    recs = [json.loads(line) for line in open(d / "rl.jsonl")]
+    steps, evals = [x for x in recs if "r_pick" in x], [x for x in recs if x.get("eval")]
+    assert len(steps) == 2
+    assert all(np.isfinite(x["r_pick"]) and x["adv_abs"] > 0.5 and x["grad_norm"] > 0 for x in steps)
+    assert [x["step"] for x in evals] == [0, 1, 2] and all(np.isfinite(x["pick"]) for x in evals)
+    assert "| pick |" in r.stdout and "r_pick" in r.stdout
+
+
 def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     assert list(world.aesthetic_top([0.3, 0.9, 0.1, 0.5, 0.7, 0.2, 0.8, 0.4, 0.6, 0.0])) == list(range(9))
     assert list(world.aesthetic_top([1.0])) == [0] and list(world.aesthetic_top([])) == []
