@@ -1323,8 +1323,9 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     for k in ("task", "consistency", "pick"):
         _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
     _check_finite(step, "reward r_distill", rewards["distill"])
-    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons,
-               "pick": args.lambda_pick}
+    weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
+    if PICK is not None:
+        weights["pick"] = args.lambda_pick              # Table 3's third reward
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "advantage", A_all)
     A = A_all[rows].to(b.x_0.device)
@@ -1371,7 +1372,9 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     parts = _parts(demo, b, args, executor=False)
     judged = judge_rollouts(_sample_parts(demo, parts, b, args, "c_D"), b.tasks, args.task_reward)
     rewards = {k: _gather(v) for k, v in judged.items()}
-    weights = {"task": args.lambda_task, "consistency": args.lambda_cons, "pick": args.lambda_pick}
+    weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
+    if PICK is not None:
+        weights["pick"] = args.lambda_pick              # in phi's rounds too
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
     A = A_all[b.rows].to(b.x_0.device)

@@ -962,11 +962,20 @@ def test_update_clips_the_gradient_norm_to_1():
 
 def test_a_demonstrator_round_weighs_task_and_consistency_by_their_lambdas(tiny_ckpt, tmp_path, monkeypatch):
     """Alg. 2 lines 11-16: phi's advantages are of lambda_task r_task + lambda_cons r_cons (no r_distill: phi is
-    judged on its own rollouts under c_D)."""
+    judged on its own rollouts under c_D). With --pick, PickScore's lambda_pick r_pick is weighed in phi's rounds and
+    in the Executor's (Table 3's third reward)."""
     advantages_of = _spy(monkeypatch, train.rl, "advantages")
     _one_step(tiny_ckpt, tmp_path, alternate=1, lambda_task=0.9, lambda_cons=0.7)
     (rewards, weights, *_), _, _ = advantages_of[-1]
     assert weights == {"task": 0.9, "consistency": 0.7} and set(rewards) == set(weights)
+    # with PickScore (--pick; here a stand-in scoring each video by its row), weighed in both kinds of round
+    monkeypatch.setattr(train, "PICK", lambda videos, prompts: np.arange(len(prompts), dtype=float))
+    for alternate in (1, 0):      # phi's round, then the Executor's
+        _one_step(tiny_ckpt, tmp_path, alternate=alternate, lambda_task=0.9, lambda_cons=0.7, lambda_pick=0.2,
+                  pick="pickscore-tiny")        # parse_args asks for one; the stand-in above is what scores
+        (rewards, weights, *_), _, _ = advantages_of[-1]
+        assert weights == {"task": 0.9, "consistency": 0.7, "pick": 0.2, **({} if alternate else {"distill": 1.0})}
+        assert rewards["pick"].tolist() == list(range(8))
 
 
 def test_judge_rollouts_solves_with_both_judges_and_an_unjudged_rollout_is_invalid(monkeypatch):
