@@ -275,7 +275,8 @@ class Args:
     lambda_cons: float = 1.0
     """weight of the consistency judge's score (Sec. 4.1 "Rewards"); 0 = without it (paper Fig. 8)"""
     beta_d: float = 1.0
-    """Eq. 12: weight of the Demonstrator anchor (Eq. 11); 0 = RL without the anchor"""
+    """Eq. 12: weight of the Demonstrator anchor (Eq. 11); 0 = RL without the anchor. With every reward weight 0 the
+    rl stage trains the anchor alone (train.anchor_only: Fig. 4 left's on-policy variant, on any --model)"""
     demonstrator: str = "base"
     """who gives v_theta'(x_t, t | c_D) in Eqs. 9 and 11: base (the fixed base, adapters off: the paper's main
     setting) | executor (the Executor's own current weights under c_D: App. A.3's shared weights, which the paper
@@ -368,6 +369,15 @@ def reward_weights(args: Args) -> tuple:
     return ("lambda_task", "lambda_cons", *pick) if args.alternate else ()
 
 
+def anchor_only(args: Args) -> bool:
+    """Eq. 12 with no reward weighed (every --lambda_* 0) and the anchor on (--beta_d > 0): the Executor's rounds
+    train beta_d L_anchor (Eq. 11) alone, on its own states -- Fig. 4 left's on-policy variant without r_distill, what
+    `--stage distill --variant on` trains on the toy, and the way to run it on a real model, whose distill stage is
+    not wired. The judges still judge each rollout, for the log."""
+    return (args.executor_update == "wmsd" and not args.alternate and args.beta_d > 0
+            and args.lambda_task == args.lambda_cons == args.lambda_distill == args.lambda_pick == 0)
+
+
 def unread_flags(args: Args) -> list:
     """The flags set (to anything but their default) that nothing in this run would read, each as (name, what
     reads it, what was chosen instead): a flag of another --stage (READ_BY) or --trainer (TRAINER_READS), or one
@@ -404,7 +414,9 @@ def unread_flags(args: Args) -> list:
                        "adv_clip", "lambda_pick")),
         *((name, "--executor_update wmsd (Eq. 12's rounds)", "--executor_update off", off)
           for name in ("lambda_distill", "distill_reward", "beta_d", "inner_epochs")),
-        ("task_reward", "--lambda_task > 0 (r_task's weight)", "--lambda_task 0", args.lambda_task == 0)]
+        ("task_reward", "--lambda_task > 0 (r_task's weight)", "--lambda_task 0", args.lambda_task == 0),
+        *((name, "L_RL (a --lambda_* > 0)", "every --lambda_* 0 (the anchor alone)", anchor_only(args))
+          for name in ("trainer", *TRAINER_READS, "adv_agg", "adv_clip"))]
     return [(name, readers, chosen) for name, readers, chosen, unread in candidates
             if unread and getattr(args, name) != getattr(default, name)]
 
@@ -495,9 +507,10 @@ def parse_args(argv=None) -> Args:
         if getattr(args, name) <= 0:
             p.error(f"--{name} must be > 0, got {getattr(args, name)}")
     weighed = reward_weights(args)    # none: unread_flags refuses any weight set
-    if weighed and sum(getattr(args, name) for name in weighed) == 0:
+    if weighed and sum(getattr(args, name) for name in weighed) == 0 and not anchor_only(args):
         p.error(f"at least one of {', '.join('--' + name for name in weighed)} must be > 0"
-                + ("" if args.executor_update == "wmsd" else " (Alg. 2's Demonstrator rounds weigh no r_distill)"))
+                + (" (Alg. 2's Demonstrator rounds weigh no r_distill)" if args.executor_update != "wmsd" else
+                   "" if args.alternate else ", or --beta_d (the anchor alone, Eq. 11)"))
     if args.noise_level <= 0 and (args.sampler == "sde" or args.trainer in rl.NEEDS_SDE):
         p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:
@@ -1062,8 +1075,10 @@ TOY_TASK_REWARDS = ("end_state", "attributed")   # --task_reward: reward.judge_t
 def fig5_setting(args: Args) -> str:
     """The name of the training setting the flags select (Fig. 5), for the final table's Executor row and the
     curve's title."""
-    if args.executor_update == "off":
-        return "off-policy distillation + RL on the teacher"
+    if args.executor_update == "off":    # without --alternate, Eq. 3 alone: Fig. 4 left's off-policy variant
+        return "off-policy distillation + RL on the teacher" if args.alternate else "off-policy distillation (Eq. 3)"
+    if anchor_only(args):
+        return "the anchor alone (Eq. 11, on-policy)"
     if args.beta_d == 0 and args.lambda_distill == 0:
         return "RL from the judges alone"
     if args.demonstrator == "executor":
@@ -1326,13 +1341,16 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
     if PICK is not None:
         weights["pick"] = args.lambda_pick              # Table 3's third reward
-    A_all = rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip)
+    anchor = anchor_only(args)   # no reward weighed: no advantages, no L_RL, Eq. 11 alone
+    A_all = (torch.zeros(N) if anchor else
+             rl.advantages({k: rewards[k] for k in weights}, weights, groups, args.adv_agg, args.adv_clip))
     _check_finite(step, "advantage", A_all)
     A = A_all[rows].to(b.x_0.device)
     t2 = time.time()
 
     def wmsd(p):   # lines 9-11: L_RL, the anchor (Eq. 11) on the rollouts' own states, Eq. 12
-        l_rl, info = rl.OBJECTIVES[args.trainer](model, p.ro, A[p.rows], cfg, gen)
+        l_rl, info = ((torch.zeros((), device=A.device), {}) if anchor else
+                      rl.OBJECTIVES[args.trainer](model, p.ro, A[p.rows], cfg, gen))
         l_anchor = (distill.anchor_loss(model, (p.ro.xs, p.ro.ts), p.c_E, p.c_D, gen, teacher, p.shard,
                                         state_window(args), args.distill_motion_weight, teacher_v=p.vD)
                     if args.beta_d > 0 else None)
@@ -1686,7 +1704,8 @@ def rl_stage(args: Args) -> dict:
     logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
     logf.close()
     say(f"  eval step {args.steps}: {eval_line(final)}", flush=True)
-    name = f"{fig5_setting(args)} ({args.trainer}, {given}{f', EMA {args.executor_ema}' if ema else ''})"
+    trainer = "" if anchor_only(args) or not reward_weights(args) else f"{args.trainer}, "   # no L_RL: no trainer
+    name = f"{fig5_setting(args)} ({trainer}{given}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {

@@ -395,7 +395,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--stage", "distill", "--variant", "paired", "--distill_motion_weight", "10"],
                        "--distill_motion_weight weighs Eq. 4"),
                       (["--model", "ltx2-tiny", "--distill_motion_weight", "2"], "first frame: toy model only"),
-                      (["--lambda_task", "0", "--lambda_distill", "0", "--lambda_cons", "0"], "at least one of"),
+                      (["--lambda_task", "0", "--lambda_distill", "0", "--lambda_cons", "0", "--beta_d", "0"],
+                       "at least one of --lambda_task, --lambda_distill, --lambda_cons must be > 0, or --beta_d"),
                       (["--alternate", "2", "--executor_update", "off", "--lambda_task", "0", "--lambda_cons", "0"],
                        "at least one of --lambda_task, --lambda_cons must be > 0 (Alg. 2's Demonstrator rounds weigh"),
                       (["--sampler", "sde", "--noise_level", "0"], "--noise_level must be > 0 for SDE rollouts"),
@@ -722,6 +723,9 @@ def test_nfts_a_max_is_the_advantage_clip_or_5_without_one():
     *((flag, ["--executor_update", "off", "--alternate", "2"], ["--alternate", "2"],
        f"{flag[0]} is read with --executor_update wmsd (Eq. 12's rounds) only: --executor_update off would ignore it")
       for flag in (["--lambda_distill", "0.5"], ["--beta_d", "0.1"], ["--inner_epochs", "2"])),
+    *((flag, ["--lambda_task", "0", "--lambda_cons", "0", "--lambda_distill", "0"], ["--lambda_cons", "0"],
+       f"{flag[0]} is read with L_RL (a --lambda_* > 0) only: every --lambda_* 0 (the anchor alone) would ignore it")
+      for flag in (["--trainer", "nft"], ["--awm_timesteps", "3"], ["--adv_agg", "sum"], ["--adv_clip", "2"])),
     (["--task_reward", "attributed"], ["--lambda_task", "0"], ["--lambda_task", "0.5"],
      "--task_reward is read with --lambda_task > 0 (r_task's weight) only: --lambda_task 0 would ignore it"),
 ])
@@ -740,6 +744,10 @@ def test_the_final_table_names_the_fig5_setting_the_flags_select():
     assert name("--beta_d", "0", "--lambda_distill", "0") == "RL from the judges alone"
     assert name("--alternate", "2") == "WMSD, alternating (Alg. 2)"
     assert name("--alternate", "2", "--executor_update", "off") == "off-policy distillation + RL on the teacher"
+    assert name("--executor_update", "off") == "off-policy distillation (Eq. 3)"       # Fig. 4 left's three, on
+    assert name("--lambda_task", "0", "--lambda_cons", "0", "--lambda_distill", "0") == (   # a real model too
+        "the anchor alone (Eq. 11, on-policy)")
+    assert name("--lambda_task", "0", "--lambda_cons", "0") == "WMSD"
     assert name("--demonstrator", "executor") == "WMSD, the Executor as its own Demonstrator (App. A.3)"
 
 
@@ -786,6 +794,23 @@ def test_rl_step_wires_eq9_into_eq10_with_the_lambdas_and_eq12_with_beta_d(tiny_
         assert rec["r_distill"] == pytest.approx(terms.sum(1).mean().item(), rel=1e-6)   # the log keeps Eq. 9's sum
         # the tiny base's velocities are small (L_anchor ~1e-8): a tolerance relative to the anchor's term
         assert rec["l_anchor"] > 0 and abs(rec["loss"] - (rec["l_rl"] + 0.3 * rec["l_anchor"])) < 1e-3 * rec["l_anchor"]
+
+
+def test_with_no_reward_weighed_the_step_trains_the_anchor_alone(tiny_ckpt, tmp_path, monkeypatch):
+    """Every --lambda_* 0 with --beta_d > 0 (train.anchor_only): no advantages, no L_RL, the loss is beta_d L_anchor
+    (Eq. 11 on the Executor's own states) -- Fig. 4 left's on-policy variant, runnable on a real model. The same
+    step with r_distill weighed (the full on-policy objective) does compute advantages and L_RL."""
+    advantages_of = _spy(monkeypatch, train.rl, "advantages")
+    awm, awm_of = train.rl.OBJECTIVES["awm"], []
+    monkeypatch.setitem(train.rl.OBJECTIVES, "awm", lambda *a, **k: awm_of.append(1) or awm(*a, **k))
+    rec, grads, *_ = _one_step(tiny_ckpt, tmp_path, lambda_task=0, lambda_cons=0, lambda_distill=0, beta_d=0.3)
+    assert not advantages_of and not awm_of and rec["l_rl"] == 0 and rec["adv_abs"] == 0
+    assert rec["l_anchor"] > 0 and rec["loss"] == pytest.approx(0.3 * rec["l_anchor"], rel=1e-5)
+    assert any(g.abs().sum() > 0 for g in grads)
+    assert train.fig5_setting(_args(tiny_ckpt, tmp_path, lambda_task=0, lambda_cons=0, lambda_distill=0)).startswith(
+        "the anchor alone")
+    _one_step(tiny_ckpt, tmp_path, lambda_task=0, lambda_cons=0, lambda_distill=1, beta_d=0.3)   # Fig. 4 left's
+    assert advantages_of and awm_of                                           # full on-policy objective: r_distill
 
 
 def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tiny_ckpt, tmp_path, monkeypatch):
