@@ -832,6 +832,9 @@ def main(argv=None):
                    "between encodings (less GPU memory, the same videos)")
     p.add_argument("--offload_judge", action="store_true", help="a VLM judge: keep its weights in CPU memory "
                    "between the prompts it judges (less GPU memory, the same judgments)")
+    p.add_argument("--height", type=int, default=0, help="a real model: evaluate at this height and --width "
+                   "(Table 3's evaluation resolution: LTX-2 512 x 768; models.resolution); 0: its training size")
+    p.add_argument("--width", type=int, default=0, help="see --height")
     p.add_argument("--batch", type=int, default=200, help="videos per sampling pass (fewer: less memory)")
     p.add_argument("--condition", choices=CONDITIONS, default="task", help="which prompt the model gets")
     p.add_argument("--n", type=int, default=None, help="bench pairs to evaluate (1..200; default 200, with --gallery "
@@ -911,6 +914,10 @@ def main(argv=None):
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
     if a.offload_text and a.model == "toy":
         p.error("--offload_text is for a real model's text encoder (--model ltx2 / hunyuan15, -tiny, -random)")
+    if (a.height > 0) != (a.width > 0) or min(a.height, a.width) < 0:
+        p.error(f"--height and --width go together, both > 0, got {a.height} x {a.width}")
+    if a.height and a.model == "toy":
+        p.error("--height and --width are for a real model: the toy's U-Net is 16 x 16")
     if a.lora and a.model == "toy":
         p.error("--lora loads a real model's Executor; a toy Executor checkpoint has its LoRA merged: --checkpoint")
     if a.model != "toy" and a.checkpoint:
@@ -973,7 +980,7 @@ def main(argv=None):
                       f"(rank {run.get('lora_rank', '?')}, {run.get('steps', '?')} steps of --model "
                       f"{run.get('model', '?')})")
             if a.dataset:
-                pairs = train.dataset_pairs(a.dataset, model, a.n, "--n")
+                pairs = train.dataset_pairs(a.dataset, model, a.n, "--n", (a.width, a.height) if a.height else None)
         else:
             model, _ = models.load_checkpoint(a.checkpoint)
             if a.executor:
@@ -995,7 +1002,14 @@ def main(argv=None):
     if a.crowded:
         pairs = world.crowded_pairs(a.error_rate)
     if a.real:
-        _run_one(a, model, judge, pairs)
+        with contextlib.ExitStack() as size:
+            if a.height:       # Table 3's evaluation resolution
+                try:
+                    size.enter_context(models.resolution(model, a.height, a.width))
+                except ValueError as e:
+                    print(f"error: --height, --width: {e}", file=sys.stderr)
+                    sys.exit(2)
+            _run_one(a, model, judge, pairs)
         return
     probe = contextlib.nullcontext()
     if a.relate_probe:

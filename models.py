@@ -858,6 +858,27 @@ def _image_batch(frame0, height: int, width: int) -> torch.Tensor:
     return F_.interpolate(img, size=(height, width), mode="bilinear", align_corners=False)
 
 
+@contextlib.contextmanager
+def resolution(model, height: int, width: int):
+    """Inside this block a real backend conditions, samples and decodes at height x width, then at its own size
+    again: Table 3 trains LTX-2 at 384 x 576 and evaluates it at 512 x 768 (train.py --eval_height, --eval_width;
+    bench.py --height, --width). The latent grid scales with the pixels, so both must be multiples of the VAE's
+    spatial compression, the model's size over its latent grid's; the frame count is unchanged."""
+    if getattr(model, "backend", "toy") == "toy":
+        raise ValueError("a resolution other than the training one is for a real model: the toy's U-Net is 16 x 16")
+    C, F_lat, h, w = model._latent
+    sh, sw = model.height // h, model.width // w
+    if height < sh or width < sw or height % sh or width % sw:
+        raise ValueError(f"{height} x {width} is not a multiple of {sh} x {sw}, the pixels of one latent cell of "
+                         f"this VAE")
+    old = model.height, model.width, model._latent
+    model.height, model.width, model._latent = height, width, (C, F_lat, height // sh, width // sw)
+    try:
+        yield model
+    finally:
+        model.height, model.width, model._latent = old
+
+
 def _with_first_frame(video: torch.Tensor, frame0) -> np.ndarray:
     """A real backend's decoded video (B, 3, F, H, W) in [-1, 1] -> uint8 (B, F, H, W, 3) whose frame 0 is the given
     observation (nearest-resized to H x W), as in the toy's decode: frame 0 is the condition, not generated."""

@@ -215,6 +215,11 @@ class Args:
     dataset: str = ""
     """a WorldTasks JSONL file (image, task, description per line; world.make_worldtasks writes one) to train on
     instead of the toy VLM's pairs"""
+    eval_height: int = 0
+    """a real model's bench evaluations at this height and --eval_width (Table 3's evaluation resolution: LTX-2 trains
+    at 384 x 576 and is evaluated at 512 x 768; models.resolution); 0: the training size"""
+    eval_width: int = 0
+    """see --eval_height"""
     eval_dataset: str = ""
     """a WorldTasks JSONL file whose first --eval_n rows are the bench (the paper's WorldTasks-Bench: 200 held-out
     image-task pairs), judged with the bench prompts; empty: the toy bench. No row may also be in --dataset"""
@@ -340,7 +345,8 @@ READ_BY = {
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
                      "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "train_crowded",
                      "eval_crowded", "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight",
-                     "model", "eval_dataset", "judge", "judge_path", "micro_batch"), ("distill", "rl")),
+                     "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width"),
+                    ("distill", "rl")),
     **dict.fromkeys(("toy_gpu", "model_path", "dataset", "offload_judge", "trainer", "group_size", "tasks_per_step",
                      "grad_checkpoint", "offload_text", "sampler", "noise_level", "lambda_task", "task_reward",
                      "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
@@ -527,6 +533,10 @@ def parse_args(argv=None) -> Args:
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+    if (args.eval_height > 0) != (args.eval_width > 0) or min(args.eval_height, args.eval_width) < 0:
+        p.error(f"--eval_height and --eval_width go together, both > 0, got {args.eval_height} x {args.eval_width}")
+    if args.eval_height and args.model == "toy":
+        p.error("--eval_height and --eval_width are for a real model: the toy's U-Net is 16 x 16")
     if args.pick == "pickscore" and not args.pick_path:
         p.error("--pick pickscore needs --pick_path (a local directory of PickScore; nothing is downloaded)")
     if args.lambda_pick > 0 and args.pick == "none":
@@ -827,7 +837,9 @@ def evaluate_executor(model, args: Args, demonstrator: bool | str = False) -> di
     Demonstrator (adapters off) given the toy VLM's D. Same noise seed (0) every time, so curves compare like with
     like."""
     ctx = models.adapters_disabled(model) if demonstrator is True else contextlib.nullcontext()
-    with ctx:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
+    size = (models.resolution(model, args.eval_height, args.eval_width) if args.eval_height else
+            contextlib.nullcontext())      # Table 3's evaluation resolution
+    with ctx, size:   # demonstrator="trained": Alg. 2's phi, its adapters on, given D
         res, videos, _ = bench.evaluate(model, "vlm" if demonstrator else args.executor_prompt, args.eval_n, seed=0,
                                         error_rate=args.error_rate, steps=args.sample_steps, judge=JUDGE,
                                         batch=args.micro_batch or 200, pairs=eval_pairs(args), pick=PICK)
@@ -1504,11 +1516,12 @@ def toy_pairs(args: Args) -> list:
                              crowded=args.train_crowded)
 
 
-def dataset_pairs(path: str, model, need: int, flag: str) -> list:
-    """The rows of a WorldTasks JSONL file as (image, T, D) pairs, the images resized to the model's resolution;
-    a clear error naming the line of a bad row, or if there are fewer than `need` rows (`flag` asks for them)."""
+def dataset_pairs(path: str, model, need: int, flag: str, size: tuple | None = None) -> list:
+    """The rows of a WorldTasks JSONL file as (image, T, D) pairs, the images resized to the model's resolution (or
+    to `size`, (width, height): a bench evaluated at another, --eval_height); a clear error naming the line of a bad
+    row, or if there are fewer than `need` rows (`flag` asks for them)."""
     from PIL import Image
-    size = (getattr(model, "width", world.W), getattr(model, "height", world.H))
+    size = size or (getattr(model, "width", world.W), getattr(model, "height", world.H))     # (width, height)
     rows = world.load_dataset(path)
     for r in rows:   # what the model would refuse mid-run, said now with its line
         try:
@@ -1542,7 +1555,8 @@ def load_bench(args: Args, model, train: list) -> list | None:
     also a training row of `train` (load_pairs; same image and task) is an error: the bench is held out."""
     if not args.eval_dataset:
         return None
-    pairs = dataset_pairs(args.eval_dataset, model, args.eval_n, "--eval_n")[:args.eval_n]
+    size = (args.eval_width, args.eval_height) if args.eval_height else None     # the frames at the bench's size
+    pairs = dataset_pairs(args.eval_dataset, model, args.eval_n, "--eval_n", size)[:args.eval_n]
     if args.dataset:
         train_rows = {(p.image, p.task.text) for p in train}
         shared = [p for p in pairs if (p.image, p.task.text) in train_rows]
@@ -1571,6 +1585,9 @@ def rl_stage(args: Args) -> dict:
     start = time.time()
     global JUDGE, BENCH, PICK
     model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
+    if args.eval_height:                     # and an evaluation size this VAE cannot take
+        with models.resolution(model, args.eval_height, args.eval_width):
+            pass
     JUDGE, PICK = make_judge(args), make_pick(args)
     pairs = load_pairs(args, model)
     BENCH = load_bench(args, model, pairs)

@@ -42,6 +42,7 @@ REPORT = [f"tests/test_report.py::test_{name}" for name in (
     "ctrl_c_starts_no_more_runs_and_keeps_the_finished")] + [
     "tests/test_scripts.py::test_output_paths_are_checked_before_any_work"]
 
+RESOLUTION = "tests/test_real_backends.py::test_a_real_model_evaluates_at_table_3s_evaluation_resolution"
 PICKSCORE = "tests/test_real_backends.py::test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward"
 TAXONOMY = "tests/test_real_backends.py::test_the_prompt_only_taxonomy_labels_rows_and_groups_fig_3_and_fig_7"
 
@@ -659,6 +660,37 @@ MUTANTS = {
          "the anchor alone named as WMSD in the table"),
         ('"off-policy distillation + RL on the teacher" if args.alternate else',
          '"off-policy distillation + RL on the teacher" if True else', "Eq. 3 alone named RL on the teacher"),
+    ]),
+    "models.py (evaluation resolution)": ([RESOLUTION], [
+        ('    model.height, model.width, model._latent = height, width, (C, F_lat, height // sh, width // sw)',
+         '    model.height, model.width, model._latent = height, width, (C, F_lat, h, w)',
+         "another resolution sampled on the training size's latent grid"),
+        ('        model.height, model.width, model._latent = old', '        pass',
+         "the training size not restored after an evaluation"),
+        ('    if height < sh or width < sw or height % sh or width % sw:', '    if height < sh or width < sw:',
+         "a size the VAE cannot take accepted"),
+        ('    if getattr(model, "backend", "toy") == "toy":\n        raise ValueError("a resolution',
+         '    if False:\n        raise ValueError("a resolution', "the toy given a resolution it cannot take"),
+    ]),
+    "train.py (evaluation resolution)": ([RESOLUTION, "tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written"], [
+        ('    size = (models.resolution(model, args.eval_height, args.eval_width) if args.eval_height else',
+         '    size = (models.resolution(model, args.eval_height, args.eval_width) if False else',
+         "--eval_height not reaching the evaluations"),
+        ('    size = (args.eval_width, args.eval_height) if args.eval_height else None',
+         '    size = None', "the bench's first frames at the training size under --eval_height"),
+        ('    if args.eval_height:                     # and an evaluation size', '    if False:                     # and',
+         "an evaluation size the VAE cannot take found only after the run's folder is written"),
+        ('    if args.eval_height and args.model == "toy":', '    if False:', "--eval_height with the toy accepted"),
+        ('    if (args.eval_height > 0) != (args.eval_width > 0) or', '    if False or',
+         "--eval_height without --eval_width accepted"),
+    ]),
+    "bench.py (evaluation resolution)": ([RESOLUTION, "tests/test_scripts.py::test_bad_input_gives_one_clear_error"], [
+        ('            if a.height:       # Table 3', '            if False:       # Table 3',
+         "bench.py --height not reaching the evaluation"),
+        ('                    print(f"error: --height, --width: {e}", file=sys.stderr)\n                    sys.exit(2)',
+         '                    raise', "bench.py's size the VAE cannot take ending in a traceback"),
+        ('    if a.height and a.model == "toy":', '    if False:', "bench.py --height with the toy accepted"),
+        ('    if (a.height > 0) != (a.width > 0) or', '    if False or', "bench.py --height without --width accepted"),
     ]),
     "train.py (step)": (["tests/test_train.py"], [
         ('        except (ValueError, KeyError, TypeError):   # damaged', '        except KeyError:   # damaged',

@@ -927,6 +927,54 @@ def test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward(tin
     assert "| pick |" in r.stdout and "r_pick" in r.stdout
 
 
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15], ids=["ltx2", "hunyuan15"])
+def test_a_real_model_evaluates_at_table_3s_evaluation_resolution(cls, tmp_path, monkeypatch):
+    """models.resolution: inside it a real backend conditions, samples and decodes at another size (Table 3: LTX-2
+    trains at 384 x 576 and is evaluated at 512 x 768), its latent grid scaled alike, and after it at its own size
+    again; a size its VAE cannot take is a clear error. train.py --eval_height/--eval_width evaluates at it and
+    trains at the model's size; bench.py --height/--width evaluates at it."""
+    m = cls.tiny(world.VOCAB + ["[", "]:"])
+    grid, size = m.latent_shape(), (m.height, m.width)
+    pairs = world.make_pairs(2, seed=0, error_rate=0.0)
+    f0, prompts = np.stack([p.frame0 for p in pairs]), [p.task.text for p in pairs]
+    with models.resolution(m, 2 * m.height, 4 * m.width):
+        assert m.latent_shape() == (*grid[:2], 2 * grid[2], 4 * grid[3])
+        assert models.generate(m, f0, prompts, steps=1, seed=0).shape[2:4] == (2 * size[0], 4 * size[1])
+    assert m.latent_shape() == grid and (m.height, m.width) == size
+    own = models.generate(m, f0, prompts, steps=1, seed=0)
+    assert own.shape[2:4] == size
+    with pytest.raises(ValueError, match=r"not a multiple of \d+ x \d+, the pixels of one latent cell"):
+        with models.resolution(m, m.height + 1, m.width):
+            pass
+    with pytest.raises(ValueError, match="for a real model"):
+        with models.resolution(models.load_checkpoint(None)[0], 32, 32):
+            pass
+    if cls is models.HunyuanVideo15:        # the scripts: once is enough
+        return
+    train_data, bench_data = _toy_dataset(tmp_path / "train", 4, seed=5), _toy_dataset(tmp_path / "bench", 2, seed=6)
+    evaluated, trained = [], []
+    evaluate, rollouts = train.bench.evaluate, train._rollouts
+    monkeypatch.setattr(train.bench, "evaluate", lambda model, *a, **k: evaluated.append(
+        (model.height, model.width, k["pairs"][0].frame0.shape[:2])) or evaluate(model, *a, **k))
+    monkeypatch.setattr(train, "_rollouts", lambda net, c, x_0, *a: trained.append(tuple(x_0.shape[-2:])) or
+                        rollouts(net, c, x_0, *a))
+    train.main(["--model", "ltx2-tiny", "--steps", "1", "--eval_n", "2", "--tasks_per_step", "2", "--group_size", "2",
+                "--sample_steps", "2", "--dataset", train_data, "--eval_dataset", bench_data, "--eval_height", "32",
+                "--eval_width", "64", "--run_dir", str(tmp_path / "run"), "--threads", "1"])
+    assert len(evaluated) == 3 and set(evaluated) == {(32, 64, (32, 64))}    # base, Demonstrator, the Executor
+    assert trained == [tuple(grid[-2:])]                                    # training at the model's own size
+    err = run("train.py", "--model", "ltx2-tiny", "--eval_height", "65", "--eval_width", "96", "--run_dir",
+              str(tmp_path / "never"))
+    assert err.returncode == 2 and "is not a multiple of 2 x 2" in err.stderr and not (tmp_path / "never").exists()
+    r = run("bench.py", "--model", "ltx2-tiny", "--dataset", bench_data, "--n", "2", "--steps", "2", "--height", "32",
+            "--width", "64", "--png", str(tmp_path / "strip.png"))
+    assert r.returncode == 0 and "task" in r.stdout, r.stderr
+    frames, scale = own.shape[1], 6 * world.H // 32       # bench.save_strip: 2 videos of 32 x 64 a frame
+    assert Image.open(tmp_path / "strip.png").size == (frames * 64 * scale, 2 * 32 * scale)
+    r = run("bench.py", "--model", "ltx2-tiny", "--n", "2", "--height", "65", "--width", "96")
+    assert r.returncode == 2 and "error: --height, --width: 65 x 96 is not a multiple" in r.stderr
+
+
 def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     assert list(world.aesthetic_top([0.3, 0.9, 0.1, 0.5, 0.7, 0.2, 0.8, 0.4, 0.6, 0.0])) == list(range(9))
     assert list(world.aesthetic_top([1.0])) == [0] and list(world.aesthetic_top([])) == []

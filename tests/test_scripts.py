@@ -150,6 +150,8 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--judge", "qwen-vl-tiny", "--judge_path", tmp_path], "--judge qwen-vl-tiny would ignore"),
                       (["--offload_judge"], "--offload_judge is for a VLM judge's weights"),
                       (["--offload_text"], "--offload_text is for a real model's text encoder"),
+                      (["--height", "32", "--width", "32"], "--height and --width are for a real model"),
+                      (["--height", "32"], "--height and --width go together, both > 0, got 32 x 0"),
                       (["--lora", bad], "--lora loads a real model's Executor"),
                       (["--model", "ltx2-tiny", "--checkpoint", bad], "--checkpoint is a toy model file"),
                       (["--dataset", tmp_path / "d.jsonl", "--condition", "oracle"], "needs the toy bench's scenes"),

@@ -406,6 +406,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       *([(["--model", "ltx2-random"], "it needs a CUDA GPU"),
                          (["--judge", "qwen-vl-random"], "it needs a CUDA GPU")] if no_gpu else []),
                       (["--judge", "qwen-vl"], "--judge qwen-vl needs --judge_path"),
+                      (["--eval_height", "32", "--eval_width", "32"], "--eval_height and --eval_width are for a real"),
+                      (["--model", "ltx2-tiny", "--eval_height", "32"], "--eval_height and --eval_width go together"),
                       (["--pick", "pickscore", "--lambda_pick", "0.2"], "--pick pickscore needs --pick_path"),
                       (["--lambda_pick", "0.2"], "--lambda_pick weighs PickScore: it needs --pick pickscore"),
                       (["--pick", "clip"], "--pick: unknown 'clip'; choose from none, pickscore, pickscore-tiny"),
