@@ -446,7 +446,7 @@ class VLMJudge:
             for s in range(0, len(prompts), self.batch):
                 ps = prompts[s:s + self.batch]
                 frames = [[] for _ in ps] if videos is None else [self._frames(v) for v in videos[s:s + self.batch]]
-                vision = {}
+                vision, per_image = {}, []      # without videos: no image tokens in any prompt
                 if videos is not None:
                     img = self.image_processor(images=[f for fs in frames for f in fs], return_tensors="pt")
                     vision = dict(pixel_values=img["pixel_values"].to(dev, self.model.dtype),
@@ -454,7 +454,7 @@ class VLMJudge:
                     per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
                 texts, k = [], 0
                 for fs, p in zip(frames, ps):
-                    texts.append(self._chat(per_image[k:k + len(fs)] if fs else [], p))
+                    texts.append(self._chat(per_image[k:k + len(fs)], p))
                     k += len(fs)
                 self.tokenizer.padding_side = "left"
                 enc = self.tokenizer(texts, return_tensors="pt", padding=True)
