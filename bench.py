@@ -192,16 +192,48 @@ def consistency_faults(judgments: list[dict]) -> dict:
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
+def agent_type(p) -> str:
+    """A bench pair's agent type (paper Fig. 7 right): the first-person camera vs a sprite; on a real-image bench, the
+    taxonomy's agent category where its rows carry one (world.classify_tasks; train.task_groups), else any other
+    agent."""
+    if getattr(p.task, "agent_type", None):
+        return p.task.agent_type
+    return "first-person view" if p.task.agent == world.FIRST_PERSON else "sprite" if hasattr(p, "scene") \
+        else "other agent"
+
+
 def agent_type_scores(pairs: list, judgments: list[dict]) -> dict:
-    """Agent score per agent type (paper Fig. 7 right): the first-person camera vs a sprite; on a real-image bench,
-    the taxonomy's agent category where its rows carry one (world.classify_tasks; train.task_groups), else any
-    other agent."""
-    def group(p):
-        if getattr(p.task, "agent_type", None):
-            return p.task.agent_type
-        return "first-person view" if p.task.agent == world.FIRST_PERSON else "sprite" if hasattr(p, "scene") \
-            else "other agent"
-    return family_scores(pairs, judgments, "agent", group)
+    """Agent score per agent type (agent_type; paper Fig. 7 right)."""
+    return family_scores(pairs, judgments, "agent", agent_type)
+
+
+FIG7_SUPPORT = 0.05   # Fig. 7 shows "all categories with more than 5% benchmark support" (Sec. 4.3)
+FIG7 = {"families": "task", "agent_types": "agent"}   # Fig. 7: an evaluation's subgroups -> the score they count
+
+
+def subgroup_sizes(pairs: list) -> dict:
+    """How many bench pairs each Fig. 7 subgroup holds, judged or not: {"families": {g: n}, "agent_types": {g: n}}.
+    A subgroup's support is its share of the bench (fig7_lines), not of the valid judgments."""
+    out = {"families": {}, "agent_types": {}}
+    for p in pairs:
+        for part, g in (("families", p.task.family), ("agent_types", agent_type(p))):
+            out[part][g] = out[part].get(g, 0) + 1
+    return out
+
+
+def fig7_lines(res: dict) -> list[str]:
+    """Fig. 7 as text, one line a panel: the task score per task type and the agent score per agent type, "score
+    (successes/valid)", for the subgroups with more than FIG7_SUPPORT of the bench's pairs, as the paper shows them.
+    The smaller subgroups follow on the same line with their sizes, so nothing is hidden."""
+    lines = []
+    for part, key in FIG7.items():
+        sizes = res["sizes"][part]
+        big = [g for g in res[part] if sizes[g] > FIG7_SUPPORT * res["n"]]
+        cells = ", ".join(f"{g} {s / max(v, 1):.3f} ({s}/{v})" for g, (s, v) in res[part].items() if g in big)
+        small = ", ".join(f"{g} {s}/{v} ({sizes[g]} pairs)" for g, (s, v) in res[part].items() if g not in big)
+        lines.append(f"Fig. 7, {key} score by {key} type (over {FIG7_SUPPORT:.0%} of the bench): {cells or 'none'}"
+                     + (f"; at most {FIG7_SUPPORT:.0%}, not shown in the paper's figure: {small}" if small else ""))
+    return lines
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
@@ -227,6 +259,7 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
     res.update(condition=condition, seed=seed, error_rate=error_rate, steps=steps, guidance=guidance,
                seconds=seconds, seconds_per_video=seconds / max(len(pairs), 1), judge_seconds=time.time() - t1,
                families=family_scores(pairs, judgments), agent_types=agent_type_scores(pairs, judgments),
+               sizes=subgroup_sizes(pairs),
                kinds=kind_scores(pairs, judgments), by_vlm_error=vlm_error_scores(pairs, judgments),
                faults=consistency_faults(judgments), still=still_videos(videos) / max(len(pairs), 1))
     if pick is not None:
@@ -560,13 +593,14 @@ def format_table(res: dict, title: str = "") -> str:
     for name, (_, _, label) in JOINT.items():
         if name in res:   # results saved before a joint score existed lack it
             rows.append(f"{label}: {res[name]:.3f} ({res['successes'][name]}/{res['valid'][name]})")
-    fam = ", ".join(f"{f} {s}/{v}" for f, (s, v) in res["families"].items())
-    rows.append(f"task by family: {fam}")
+    rows += fig7_lines(res)
     if res["kinds"]:   # not known on a real-image bench
         rows.append("task by kind: " + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["kinds"].items()))
     if res["by_vlm_error"]:   # not known on a real-image bench
         rows.append("task by the toy VLM's D: "
                     + ", ".join(f"{g} {s}/{v}" for g, (s, v) in res["by_vlm_error"].items()))
+    if "pick" in res:    # bench.py --pick
+        rows.append(f"PickScore against T (mean over the videos): {res['pick']:.3f}")
     if "still" in res:   # results saved before the count existed lack it
         rows.append(f"still videos (no pixel moved > {STILL_LEVEL} levels from the first frame): {res['still']:.3f} "
                     f"({round(res['still'] * res['n'])}/{res['n']})")
@@ -671,9 +705,9 @@ def read_run(run_dir: str) -> dict:
     rl.jsonl, the share of still training rollouts at each Executor step ("steps": {step, still}; rl.jsonl's per-step
     `still` count over its batch, logged since stop 78), and the fixed rows (base given T, Demonstrator) from
     rl_summary.json when the run finished. A distill run of one --variant (distill.jsonl) gives its evaluations and,
-    once finished, its Demonstrator row; it logs no rollouts' stillness. "prompt": the Executor's; "bench": toy or
-    crowded (train.py --eval_crowded), None until the run has finished. A ValueError names a line that is not JSON,
-    a distill run of several variants, or a run with no evaluation yet."""
+    once finished, its Demonstrator row; it logs no rollouts' stillness. "prompt": the Executor's; "bench": toy,
+    crowded (train.py --eval_crowded) or the --eval_dataset file, None until the run has finished. A ValueError names
+    a line that is not JSON, a distill run of several variants, or a run with no evaluation yet."""
     path = os.path.join(run_dir, "rl.jsonl")
     distill = not os.path.isfile(path) and os.path.isfile(os.path.join(run_dir, "distill.jsonl"))
     if distill:
@@ -700,12 +734,14 @@ def read_run(run_dir: str) -> dict:
     summary = json.load(open(summ)) if os.path.isfile(summ) else {}
     if distill:     # written whole at the end: the Demonstrator row, the Executor's prompt and the bench
         fixed = {DEMO_ROW: summary["demonstrator"]} if "demonstrator" in summary else {}
-        prompt, crowded = summary.get("executor_prompt", "task"), summary.get("bench") == "crowded"
+        prompt, bench = summary.get("executor_prompt", "task"), summary.get("bench", "toy")
     else:
-        fixed, prompt = summary.get("table", {}), summary.get("args", {}).get("executor_prompt", "task")
-        crowded = summary.get("args", {}).get("eval_crowded", False)
-    return {"evals": evals, "steps": steps, "fixed": fixed, "prompt": prompt,
-            "bench": ("crowded" if crowded else "toy") if summary else None}
+        args = summary.get("args", {})
+        # a real-image bench's Demonstrator row is named for its file's D (train.py): read it as DEMO_ROW too
+        fixed = {k.replace("the bench file's D", "toy VLM's D"): v for k, v in summary.get("table", {}).items()}
+        prompt = args.get("executor_prompt", "task")
+        bench = args.get("eval_dataset") or ("crowded" if args.get("eval_crowded") else "toy")
+    return {"evals": evals, "steps": steps, "fixed": fixed, "prompt": prompt, "bench": bench if summary else None}
 
 
 def rolling_still(steps: list[dict], window: int = 10) -> list[dict]:
@@ -736,15 +772,18 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
     """Curves of several runs (read_run: rl, or distill of one variant) on one figure -- task and consistency vs
     step, the Demonstrator as a dashed line (the paper's Fig. 5 layout), a third panel for the collapse to still
     videos where the runs logged it (the share of still training rollouts, a trailing mean over 10 steps,
-    rolling_still) -- and a markdown table of start, peak and end. `runs` maps a label to a run dir, or to a list of
-    run dirs (one per seed): then each curve is the mean over seeds with a min-max band (curve_band), each cell
-    mean ± sd, and the peak is the mean curve's. Runs evaluated on different benches are refused."""
+    rolling_still), a PickScore panel where every run recorded it (train.py --pick: Fig. 4 left's second panel) --
+    and a markdown table of start, peak and end. `runs` maps a label to a run dir, or to a list of run dirs (one per
+    seed): then each curve is the mean over seeds with a min-max band (curve_band), each cell mean ± sd, and the
+    peak is the mean curve's. Runs evaluated on different benches are refused."""
     groups = {label: [read_run(d) for d in ([ds] if isinstance(ds, str) else ds)] for label, ds in runs.items()}
     benches = {r["bench"] for rs in groups.values() for r in rs} - {None}
     if len(benches) > 1:
-        raise ValueError("the runs were evaluated on different benches (train.py --eval_crowded in some): their "
-                         "curves do not compare")
+        raise ValueError(f"the runs were evaluated on different benches ({', '.join(sorted(benches))}; train.py "
+                         "--eval_crowded or --eval_dataset): their curves do not compare")
     stills = {label: [rolling_still(r["steps"]) for r in rs] for label, rs in groups.items()}
+    keys = ("task", "consistency", *(("pick",) if all("pick" in e for rs in groups.values() for r in rs
+                                                      for e in r["evals"]) else ()))
 
     def cell(xs):
         if any(x is None for x in xs):   # a run from before the still count was logged
@@ -752,7 +791,8 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         return f"{xs[0]:.3f}" if len(xs) == 1 else fmt(xs)
 
     rows = ["| run | task @0 | task peak (step) | task @end | consistency @end | agent @end | still videos @end | "
-            "still training rollouts, last 10 steps |", "|---|---|---|---|---|---|---|---|"]
+            "still training rollouts, last 10 steps |" + (" PickScore @end |" if "pick" in keys else ""),
+            "|---|---|---|---|---|---|---|---|" + ("---|" if "pick" in keys else "")]
     for label, rs in groups.items():
         evs = [r["evals"] for r in rs]
         steps = sorted(set.intersection(*[{e["step"] for e in ev} for ev in evs]))
@@ -764,24 +804,27 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
         last = [rolled[-1]["still"] if rolled else None for rolled in stills[label]]
         rows.append(f"| {label} | {cell([ev[0]['task'] for ev in evs])} | {mean_task[peak]:.3f} ({peak}) | "
                     f"{cell([e['task'] for e in end])} | {cell([e['consistency'] for e in end])} | "
-                    f"{cell([e['agent'] for e in end])} | {cell([e.get('still') for e in end])} | {cell(last)} |")
+                    f"{cell([e['agent'] for e in end])} | {cell([e.get('still') for e in end])} | {cell(last)} |"
+                    + (f" {cell([e['pick'] for e in end])} |" if "pick" in keys else ""))
     if path:
         drawn = [label for label, curves in stills.items() if all(curves)]   # every seed logged its still rollouts
-        plt, fig, axes = figure(3 if drawn else 2, width=4.5 if drawn else 5.5)
+        plt, fig, axes = figure(len(keys) + bool(drawn), width=4.5 if len(keys) + bool(drawn) > 2 else 5.5)
         demo = next((r["fixed"].get(DEMO_ROW) for rs in groups.values() for r in rs if r["fixed"]), None)
         prompts = {r["prompt"] for rs in groups.values() for r in rs}
         given = "T" if prompts == {"task"} else " / ".join(sorted(prompts)) + " (a control)"
         seeds = {len(rs) for rs in groups.values()}
-        for ax, key in zip(axes, ("task", "consistency")):
+        for ax, key in zip(axes, keys):
             for i, (label, rs) in enumerate(groups.items()):
                 curve_band(ax, [r["evals"] for r in rs], key, label, color=f"C{i}")
-            if demo:
-                ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+            if demo and key in demo:
+                ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (" + (
+                    "toy VLM's D)" if benches <= {"toy", "crowded"} else "the bench file's D)"))
             ax.set_xlabel("step")
-            ax.set_ylabel(f"{'crowded ' if benches == {'crowded'} else ''}bench {key}")
+            ax.set_ylabel(f"{'crowded ' if benches == {'crowded'} else ''}bench "
+                          + ("PickScore against T" if key == "pick" else key))
             ax.grid(alpha=0.3)
         if drawn:
-            ax = axes[2]
+            ax = axes[len(keys)]
             for i, label in enumerate(groups):   # the same colour per label as in the other panels
                 if label in drawn:
                     curve_band(ax, stills[label], "still", label, marker="", color=f"C{i}")
@@ -808,6 +851,7 @@ DIAGNOSTIC_READS = {
 
 
 def main(argv=None):
+    import train     # its loaders and its rule for the weights' paths (train imports this module, so not at the top)
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="model checkpoint (default: the shipped base)")
     p.add_argument("--model", default="toy",
@@ -822,6 +866,12 @@ def main(argv=None):
                    help="toy (reward.py's judges) | qwen-vl (--judge_path; the bench prompts of Figs. 15-17) | "
                         "qwen-vl-tiny | qwen-vl-random (Qwen3-VL-8B's sizes, random weights, on a GPU)")
     p.add_argument("--judge_path", default="", help="--judge qwen-vl: the local transformers directory")
+    p.add_argument("--pick", default="none", choices=train.PICK_CHOICES,
+                   help="also score the videos with PickScore against T (reward.PickScore; Fig. 4's quality measure): "
+                        "pickscore (--pick_path) | pickscore-tiny (random weights, for checks)")
+    p.add_argument("--pick_path", default="", help="--pick pickscore: the local transformers directory")
+    p.add_argument("--pick_processor_path", default="", help="--pick pickscore: the local directory of its tokenizer "
+                   "and image processor (default: --pick_path)")
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
                    "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
                    "toy bench")
@@ -906,9 +956,11 @@ def main(argv=None):
         p.error(models.cannot_run_here(a.model, a.judge))
     if a.judge == "qwen-vl" and not a.judge_path:
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
-    import train     # train.py's rule for the weights' paths (train imports this module, so not at the top)
-    for name, readers, chosen in train.unread_flags(train.Args(model=a.model, model_path=a.model_path, judge=a.judge,
-                                                               judge_path=a.judge_path)):
+    if a.pick == "pickscore" and not a.pick_path:
+        p.error("--pick pickscore needs --pick_path (a local directory of PickScore; nothing is downloaded)")
+    run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path, pick=a.pick,
+                     pick_path=a.pick_path, pick_processor_path=a.pick_processor_path)
+    for name, readers, chosen in train.unread_flags(run):
         p.error(f"--{name} is read with {readers} only: {chosen} would ignore it")     # a path no loader reads
     if a.offload_judge and a.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
@@ -968,8 +1020,9 @@ def main(argv=None):
             sys.exit(2)
         return
     models.use_cpu(a.threads)
-    judge = pairs = executor = None
+    judge = pairs = executor = pick = None
     try:
+        pick = train.make_pick(run)
         if a.real:       # the loaders train.py uses
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
                              init=a.checkpoint or "", offload_text=a.offload_text, offload_judge=a.offload_judge)
@@ -1009,7 +1062,7 @@ def main(argv=None):
                 except ValueError as e:
                     print(f"error: --height, --width: {e}", file=sys.stderr)
                     sys.exit(2)
-            _run_one(a, model, judge, pairs)
+            _run_one(a, model, judge, pairs, pick)
         return
     probe = contextlib.nullcontext()
     if a.relate_probe:
@@ -1019,12 +1072,13 @@ def main(argv=None):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
     with probe:
-        _run_one(a, model, pairs=pairs)
+        _run_one(a, model, pairs=pairs, pick=pick)
 
 
-def _run_one(a, model, judge=None, pairs=None) -> None:
+def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
     """main's single-checkpoint diagnostics and evaluation, once the model is loaded (and probed); `judge` a
-    reward.VLMJudge and `pairs` a real-image bench (--judge, --dataset), else the toy ones."""
+    reward.VLMJudge and `pairs` a real-image bench (--judge, --dataset), else the toy ones; `pick` a
+    reward.PickScore (--pick)."""
     if a.handoff is not None:
         conds = a.handoff.split(",")
         res = handoff(model, *conds, n=a.n, seed=a.seed, error_rate=a.error_rate, steps=a.steps)
@@ -1078,7 +1132,7 @@ def _run_one(a, model, judge=None, pairs=None) -> None:
             print(json.dumps(res))
         return
     res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
-                              a.guidance)
+                              a.guidance, pick)
     res["bench"] = a.dataset or ("crowded" if a.crowded else "toy")
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"

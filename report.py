@@ -34,7 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 import models
-from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, KEYS, curve_band, evaluate, figure, file_digest, fmt, mean_sd,
+from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, FIG7, KEYS, curve_band, evaluate, figure, file_digest, fmt, mean_sd,
                    output_path_error, read_run, save_figure, save_strip)
 
 
@@ -61,7 +61,6 @@ AT = {"0": lambda ev, k: ev[0][k], "end": lambda ev, k: ev[-1][k], "peak": lambd
 ERRORS = {"err_0": 0.0, "wmsd": DEFAULT_ERROR_RATE, "err_0.5": 0.5}
 FIG5 = {"no_anchor": "(i) RL only, no anchor", "wmsd": "(ii) WMSD", "teacher_rl": "(iii) off-policy + RL on the teacher",
         "alternate": "(iv) alternating (Alg. 2)"}
-FIG7 = {"families": "task", "agent_types": "agent"}   # Fig. 7: an evaluation's subgroups -> the score they count
 BUDGETS = {  # train.py flags per stage; --quick checks the plumbing only (its numbers mean nothing)
     "full": {"rl": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"],
              "distill": ["--steps", "25", "--eval_every", "10", "--eval_n", "64"]},

@@ -230,9 +230,10 @@ class Args:
     judge_path: str = ""
     """--judge qwen-vl: a local transformers directory of the VLM"""
     pick: str = "none"
-    """Table 3's PickScore reward, the LTX-2 setting's third ("multi (task/consistency/pick)"; reward.PickScore),
-    weighed by --lambda_pick and recorded in each evaluation (Fig. 4's quality measure): none | pickscore (from
-    --pick_path) | pickscore-tiny (random weights of the real class, for checks)"""
+    """PickScore (reward.PickScore), recorded in each evaluation (Fig. 4's quality measure) and, with --lambda_pick >
+    0, Table 3's third reward of the LTX-2 setting ("multi (task/consistency/pick)"): none | pickscore (from
+    --pick_path) | pickscore-tiny (random weights of the real class, for checks). With --lambda_pick 0 it only
+    measures: the rollouts are not scored by it"""
     pick_path: str = ""
     """--pick pickscore: a local transformers directory of PickScore (yuvalkirstain/PickScore_v1), and of its tokenizer
     and image processor unless --pick_processor_path gives them"""
@@ -240,7 +241,8 @@ class Args:
     """--pick pickscore: a local directory of PickScore's tokenizer and image processor
     (laion/CLIP-ViT-H-14-laion2B-s32B-b79K); empty: --pick_path"""
     lambda_pick: float = 0.0
-    """Eq. 10 with Table 3's third reward: weight of PickScore (the LTX-2 column: 0.225); needs --pick"""
+    """Eq. 10 with Table 3's third reward: weight of PickScore (the LTX-2 column: 0.225); needs --pick. 0: with --pick,
+    PickScore only measures, at each evaluation"""
     offload_judge: bool = False
     """a VLM judge: keep its weights in CPU memory and copy them to the GPU each time it judges a set of videos, so that they
     are not on the GPU during the update, where a step peaks (Qwen3-VL-8B: 16.3 GiB); the same judgments"""
@@ -406,7 +408,6 @@ def unread_flags(args: Args) -> list:
         ("judge_path", "--judge qwen-vl (real weights)", f"--judge {args.judge}", args.judge != "qwen-vl"),
         *((name, "--pick pickscore (real weights)", f"--pick {args.pick}", args.pick != "pickscore")
           for name in ("pick_path", "pick_processor_path")),
-        ("pick", "--lambda_pick > 0 (PickScore's weight)", "--lambda_pick 0", args.lambda_pick == 0),
         ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
         ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
         ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema),
@@ -1069,6 +1070,12 @@ PICK = None
 PICK_CHOICES = ("none", "pickscore", "pickscore-tiny")
 
 
+def weighed_pick(args: Args):
+    """PICK where Eq. 10 weighs it (--lambda_pick > 0), for judge_rollouts; None where it only measures, at each
+    evaluation (--pick with --lambda_pick 0: Fig. 4's quality panel), so the rollouts are not scored by it."""
+    return PICK if args.lambda_pick > 0 else None
+
+
 def make_pick(args: Args):
     """--pick's reward.PickScore, on this process's GPU when there is one (beside the video model and the judge)."""
     if args.pick == "none":
@@ -1098,13 +1105,13 @@ def fig5_setting(args: Args) -> str:
     return "WMSD, alternating (Alg. 2)" if args.alternate else "WMSD"
 
 
-def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end_state") -> dict:
+def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end_state", pick=None) -> dict:
     """Alg. 1 line 6: the judges' graded scores of each rollout as rewards (the toy judges' margins, or a VLM's
     log p(yes) - log p(no)). Where no judgment is possible -- a malformed video or answer, a missing agent, or a judge
     that raises -- the score is NaN: rl.advantages skips that rollout and the log counts it (paper Tab. 4); a judge
-    failure never stops the run. task_reward picks the toy r_task (--task_reward). With --pick, PickScore against T
-    (reward.PickScore; Table 3's third reward), NaN where it fails. Returns {"task", "consistency", "pick" (0 without
-    --pick), "solved", "invalid", "judge_errors"}: (N,)."""
+    failure never stops the run. task_reward picks the toy r_task (--task_reward). With `pick` (a reward.PickScore:
+    weighed_pick), PickScore against T (Table 3's third reward), NaN where it fails. Returns {"task", "consistency",
+    "pick" (0 without one), "solved", "invalid", "judge_errors"}: (N,)."""
     n = len(tasks)
     if JUDGE is not None:                       # a VLM, batched; a failing batch is counted and skipped
         errors = [0] * n
@@ -1133,13 +1140,13 @@ def judge_rollouts(videos: np.ndarray, tasks: list[str], task_reward: str = "end
             jts.append(jt)
             jcs.append(jc)
             errors.append(e)
-    pick = np.zeros(n)
-    if PICK is not None:
+    scores = np.zeros(n)
+    if pick is not None:
         try:
-            pick = PICK(videos, tasks)
+            scores = pick(videos, tasks)
         except Exception:  # noqa: BLE001
-            pick, errors = np.full(n, np.nan), [e + 1 for e in errors]
-    out = {"task": [np.nan if j.score is None else j.score for j in jts], "pick": pick,
+            scores, errors = np.full(n, np.nan), [e + 1 for e in errors]
+    out = {"task": [np.nan if j.score is None else j.score for j in jts], "pick": scores,
            "consistency": [np.nan if j.score is None else j.score for j in jcs],
            "solved": [np.nan if a.yes is None else float(a.yes and bool(b.yes)) for a, b in zip(jts, jcs)],
            "judge_errors": errors}
@@ -1331,7 +1338,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     videos = _sample_parts(model, parts, b, args, "c_E")
     t1 = time.time()
     # lines 6-8: judges, r_distill (Eq. 9), advantages of the Eq. 10 reward -- over the whole group
-    local = judge_rollouts(videos, tasks, args.task_reward)
+    local = judge_rollouts(videos, tasks, args.task_reward, weighed_pick(args))
     moved = bench.moved_pixels(videos, (bench.MOTION_LEVEL, bench.STILL_LEVEL))   # one pass over the videos
     local["motion"] = torch.tensor(moved[:, 0], dtype=torch.float32)
     local["still"] = torch.tensor(moved[:, 1] == 0, dtype=torch.float32)
@@ -1351,7 +1358,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
         _check_finite(step, f"reward r_{k}", rewards[k], skip=rewards["invalid"])
     _check_finite(step, "reward r_distill", rewards["distill"])
     weights = {"task": args.lambda_task, "distill": args.lambda_distill, "consistency": args.lambda_cons}
-    if PICK is not None:
+    if weighed_pick(args) is not None:
         weights["pick"] = args.lambda_pick              # Table 3's third reward
     anchor = anchor_only(args)   # no reward weighed: no advantages, no L_RL, Eq. 11 alone
     A_all = (torch.zeros(N) if anchor else
@@ -1377,7 +1384,7 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     return {"loss": _mean_over_processes(loss), "l_rl": _mean_over_processes(l_rl),
             "l_anchor": None if l_anchor is None else _mean_over_processes(l_anchor),
             "grad_norm": gnorm, "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
-            **({"r_pick": _mean(rewards["pick"])} if PICK is not None else {}),
+            **({"r_pick": _mean(rewards["pick"])} if weighed_pick(args) is not None else {}),
             "r_distill": float(rewards["r_distill"].mean()), "solved": _mean(rewards["solved"]),
             "invalid": int(rewards["invalid"].sum()), "judge_errors": int(rewards["judge_errors"].sum()),
             "adv_abs": float(A_all.abs().mean()),
@@ -1400,10 +1407,11 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     adapters off) as the reference, on phi's own states, under c_D."""
     b = _group_batch(demo, frame0, tasks, descs, args, gen, args.trainer in rl.NEEDS_SDE or args.sampler == "sde")
     parts = _parts(demo, b, args, executor=False)
-    judged = judge_rollouts(_sample_parts(demo, parts, b, args, "c_D"), b.tasks, args.task_reward)
+    judged = judge_rollouts(_sample_parts(demo, parts, b, args, "c_D"), b.tasks, args.task_reward,
+                            weighed_pick(args))
     rewards = {k: _gather(v) for k, v in judged.items()}
     weights = {"task": args.lambda_task, "consistency": args.lambda_cons}
-    if PICK is not None:
+    if weighed_pick(args) is not None:
         weights["pick"] = args.lambda_pick              # in phi's rounds too
     A_all = rl.advantages({k: rewards[k] for k in weights}, weights, b.groups, args.adv_agg, args.adv_clip)
     _check_finite(step, "Demonstrator advantage", A_all)
@@ -1417,7 +1425,8 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
     loss, gnorm, _ = _update(step, opt, params, parts, alg2, gen, "Demonstrator")
     return {"demo_round": True, "loss": _mean_over_processes(loss), "grad_norm": gnorm,
             "r_task": _mean(rewards["task"]), "r_cons": _mean(rewards["consistency"]),
-            **({"r_pick": _mean(rewards["pick"])} if PICK is not None else {}), "solved": _mean(rewards["solved"])}
+            **({"r_pick": _mean(rewards["pick"])} if weighed_pick(args) is not None else {}),
+            "solved": _mean(rewards["solved"])}
 
 
 # ---- the run: state checkpoints, resume, the loop -------------------------------------------------------------------

@@ -903,13 +903,14 @@ def test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward(tin
     # the step's rewards: PickScore of each rollout against its T; one that fails is counted and skipped
     train.PICK = pick
     try:
-        judged = train.judge_rollouts(videos, tasks)
+        judged = train.judge_rollouts(videos, tasks, pick=train.weighed_pick(train.Args(pick="pickscore-tiny",
+                                                                                        lambda_pick=0.2)))
         assert np.allclose(judged["pick"].numpy(), s, atol=1e-5) and not judged["invalid"].any()
+        assert train.weighed_pick(train.Args(pick="pickscore-tiny")) is None     # --lambda_pick 0: a measure only
 
         def broken(videos, prompts):
             raise RuntimeError("out of memory")
-        train.PICK = broken
-        judged = train.judge_rollouts(videos, tasks)
+        judged = train.judge_rollouts(videos, tasks, pick=broken)
         assert judged["invalid"].all() and judged["judge_errors"].tolist() == [1, 1, 1]
     finally:
         train.PICK = None
@@ -925,6 +926,28 @@ def test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward(tin
     assert all(np.isfinite(x["r_pick"]) and x["adv_abs"] > 0.5 and x["grad_norm"] > 0 for x in steps)
     assert [x["step"] for x in evals] == [0, 1, 2] and all(np.isfinite(x["pick"]) for x in evals)
     assert "| pick |" in r.stdout and "r_pick" in r.stdout
+    # with --lambda_pick 0 PickScore only measures (Fig. 4's quality panel): each evaluation records it, no rollout
+    # is scored by it -- here beside Fig. 4 left's anchor-alone variant (train.anchor_only)
+    r = run("train.py", "--toy", "--init", tiny_ckpt, "--steps", "1", "--eval_every", "1", "--eval_n", "4",
+            "--train_pairs", "8", "--sample_steps", "3", "--group_size", "4", "--tasks_per_step", "2", "--threads", "1",
+            "--pick", "pickscore-tiny", "--lambda_task", "0", "--lambda_cons", "0", "--lambda_distill", "0",
+            "--run_dir", str(tmp_path / "measure"))
+    assert r.returncode == 0, r.stderr
+    recs = [json.loads(line) for line in open(tmp_path / "measure" / "rl.jsonl")]
+    assert [x["step"] for x in recs if x.get("eval") and np.isfinite(x["pick"])] == [0, 1]
+    assert not any("r_pick" in x for x in recs) and "| pick |" in r.stdout and "anchor alone" in r.stdout
+    # bench.py --pick: the bench's videos scored against T, the weights from local directories; none there: an error
+    import bench
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--threads", "1", "--pick", "pickscore",
+            "--pick_path", str(tmp_path / "pick"), "--pick_processor_path", str(tmp_path / "proc"), "--json")
+    assert r.returncode == 0, r.stderr
+    _, videos, pairs = bench.evaluate(models.load_checkpoint(tiny_ckpt)[0].eval(), "task", 3, steps=2)
+    full = reward.PickScore.from_pretrained(str(tmp_path / "pick"), str(tmp_path / "proc"))     # 4 frames a video
+    assert json.loads(r.stdout.splitlines()[-1])["pick"] == pytest.approx(
+        float(np.mean(full(videos, [p.task.text for p in pairs]))), abs=1e-4)
+    assert "PickScore against T (mean over the videos): " in r.stdout
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--pick", "pickscore", "--pick_path", str(tmp_path))
+    assert r.returncode == 2 and "PickScore model not found at" in r.stderr
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15], ids=["ltx2", "hunyuan15"])

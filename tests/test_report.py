@@ -103,6 +103,26 @@ def test_subgroup_scores_for_fig7():
     assert kinds["edge (left)"] == [sum(i % 2 == 0 for i in left), len(left)] and left
 
 
+
+def test_fig7_shows_the_subgroups_over_5_percent_of_the_bench_and_names_the_rest():
+    """bench.fig7_lines, the paper's rule for Fig. 7 ("all categories with more than 5% benchmark support"): a
+    subgroup's support is its pairs' share of the bench, judged or not (bench.subgroup_sizes); a subgroup at 5% or
+    under is not in the figure's list but follows it with its counts and size, so nothing is hidden."""
+    from types import SimpleNamespace as NS
+    kinds = ["navigation"] * 30 + ["perception"] * 3 + ["vehicle control"] * 2 + ["positioning"] * 5
+    agents = ["vehicle"] * 3 + ["human character"] * 37
+    pairs = [NS(task=NS(family=f, agent_type=a)) for f, a in zip(kinds, agents)]
+    judgments = [_j(None if i == 31 else i % 2 == 0, i < 2, True) for i in range(40)]     # pair 31 not judged
+    res = {"n": 40, "families": bench.family_scores(pairs, judgments), "sizes": bench.subgroup_sizes(pairs),
+           "agent_types": bench.agent_type_scores(pairs, judgments)}
+    assert res["sizes"] == {"families": {"navigation": 30, "perception": 3, "vehicle control": 2, "positioning": 5},
+                            "agent_types": {"vehicle": 3, "human character": 37}}
+    task, agent = bench.fig7_lines(res)
+    shown, rest = task.split("; ")
+    assert shown.endswith("navigation 0.500 (15/30), perception 1.000 (2/2), positioning 0.400 (2/5)")
+    assert rest.endswith("not shown in the paper's figure: vehicle control 1/2 (2 pairs)")      # 2/40 = 5%: not over
+    assert agent.endswith("human character 0.000 (0/37), vehicle 0.667 (2/3)") and "; " not in agent   # 3/40 = 7.5%
+
 def test_per_seed_rows_give_each_seed_its_own_values():
     """report.per_seed_rows: a final evaluation's scores, or a curve's at its end and then its peaks, in the order of
     the seeds they belong to."""

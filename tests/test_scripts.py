@@ -148,6 +148,11 @@ def test_bad_input_gives_one_clear_error(tmp_path, capsys):
                       (["--judge_path", tmp_path], "--judge_path is read with --judge qwen-vl (real weights) only: "
                                                    "--judge toy would ignore it"),
                       (["--judge", "qwen-vl-tiny", "--judge_path", tmp_path], "--judge qwen-vl-tiny would ignore"),
+                      (["--pick", "pickscore"], "--pick pickscore needs --pick_path"),
+                      (["--pick_path", tmp_path], "--pick_path is read with --pick pickscore (real weights) only: "
+                                                  "--pick none would ignore it"),
+                      (["--pick", "pickscore-tiny", "--pick_processor_path", tmp_path], "--pick pickscore-tiny would"),
+                      (["--pick", "clip"], "invalid choice: 'clip'"),
                       (["--offload_judge"], "--offload_judge is for a VLM judge's weights"),
                       (["--offload_text"], "--offload_text is for a real model's text encoder"),
                       (["--height", "32", "--width", "32"], "--height and --width are for a real model"),
@@ -305,6 +310,27 @@ def test_compare_runs_on_fake_runs(tmp_path):
     assert PIL.Image.open(tmp_path / "cmp.png").size[0] > 1400      # three panels: the still share is drawn
     bench.compare_runs({"B": str(tmp_path / "b")}, str(tmp_path / "two.png"))
     assert PIL.Image.open(tmp_path / "two.png").size[0] < 1300      # two: nothing logged to draw
+    # runs that recorded PickScore at each evaluation (train.py --pick; Fig. 4 left's second panel): its column at
+    # the end and its panel; beside a run without it, neither
+    for name, picks in (("c", [20.0, 21.0, 22.5]), ("d", [20.0, 20.5, 19.0])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "rl.jsonl").write_text("".join(json.dumps(
+            {"eval": True, "step": 10 * i, "task": 0.1, "agent": 0.5, "consistency": 0.9, "avg": 0.5, "pick": v})
+            + "\n" for i, v in enumerate(picks)))
+    rows = bench.compare_runs({"C": str(tmp_path / "c"), "D": str(tmp_path / "d")}, str(tmp_path / "pick.png"))
+    rows = rows.splitlines()
+    assert rows[0].endswith("| PickScore @end |") and rows[2].endswith("| 22.500 |") and rows[3].endswith("| 19.000 |")
+    assert PIL.Image.open(tmp_path / "pick.png").size[0] > 1400      # task, consistency and PickScore
+    assert "PickScore" not in bench.compare_runs({"B": str(tmp_path / "b"), "C": str(tmp_path / "c")})
+    # a run on a real-image bench (train.py --eval_dataset): its Demonstrator row, named for the file's D, is read as
+    # the Demonstrator's; its bench is the file, refused beside the toy bench's runs
+    json.dump({"args": {"eval_dataset": "wt_bench.jsonl"}, "table": {
+        "Base + VLM (Demonstrator, the bench file's D)": {"task": 0.4, "consistency": 0.8, "pick": 21.0}}},
+        open(tmp_path / "c" / "rl_summary.json", "w"))
+    got = bench.read_run(str(tmp_path / "c"))
+    assert got["bench"] == "wt_bench.jsonl" and got["fixed"][bench.DEMO_ROW]["pick"] == 21.0
+    with pytest.raises(ValueError, match=r"different benches \(toy, wt_bench.jsonl; "):
+        bench.compare_runs({"A": str(tmp_path / "a"), "C": str(tmp_path / "c")})
     # two seeds of one setting: cells are mean ± sd, the peak is the mean curve's (0.15 at step 10: (0.3 + 0.0) / 2)
     table = bench.compare_runs({"A+B": [str(tmp_path / "a"), str(tmp_path / "b")]}, str(tmp_path / "band.png"))
     assert "| A+B | 0.100 ± 0.000 | 0.150 (10) | 0.125 ± 0.106 | 0.900 ± 0.000 |" in table
@@ -585,11 +611,13 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
     model = types.SimpleNamespace(eval=lambda: model)
     monkeypatch.setattr(bench.models, "load_checkpoint", stub("load", (model, {})))
     monkeypatch.setattr(train, "load_base", stub("load_base"))                 # the real path's loader
+    monkeypatch.setattr(train, "make_pick", stub("make_pick", "a PickScore"))   # --pick's loader
     monkeypatch.setattr(bench, "relate_probe", stub("relate_probe", contextlib.nullcontext()))
     for name in ("evaluate", "handoff", "pointing", "rank_rdistill", "gallery", "compare_runs"):
         monkeypatch.setattr(bench, name, stub(name))
     value = {"checkpoint": ["x.pt"], "model": ["ltx2-tiny"], "model_path": ["/p"], "lora": ["l.pt"],
-             "judge": ["qwen-vl-tiny"], "judge_path": ["/j"], "dataset": ["d.jsonl"], "offload_text": [],
+             "judge": ["qwen-vl-tiny"], "judge_path": ["/j"], "pick": ["pickscore-tiny"], "pick_path": ["/k"],
+             "pick_processor_path": ["/k2"], "dataset": ["d.jsonl"], "offload_text": [],
              "offload_judge": [], "batch": ["5"], "condition": ["vlm"], "n": ["3"], "seed": ["2"],
              "error_rate": ["0.1"], "steps": ["3"], "guidance": ["2"], "png": [tmp_path / "p.png"],
              "gallery": [tmp_path / "g.png"],
@@ -611,9 +639,11 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
         base = own
         if k == "error_rate" and mode in (None, "pointing", "rank_rdistill"):
             base = [*own, "--condition", "vlm"]         # the toy VLM's errors reach only the prompts made from its D
-        if k in ("model_path", "judge_path") and mode is None:   # read only with real weights: set, then changed
-            base = ["--model", "ltx2", "--model_path", "/q"] if k == "model_path" else \
-                ["--judge", "qwen-vl", "--judge_path", "/i"]
+        if k in ("model_path", "judge_path", "pick_path", "pick_processor_path") and mode is None:   # read only with
+            base = {"model_path": ["--model", "ltx2", "--model_path", "/q"],                 # real weights: set,
+                    "judge_path": ["--judge", "qwen-vl", "--judge_path", "/i"],             # then changed
+                    "pick_path": ["--pick", "pickscore", "--pick_path", "/m"],
+                    "pick_processor_path": ["--pick", "pickscore", "--pick_path", "/m"]}[k]
         argv = [*base, f"--{k}", *value[k]]
         if k in ("lora", "offload_text") and mode is None:
             argv = ["--model", "ltx2-tiny", *argv]       # a real model's flags, with a real model

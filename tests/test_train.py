@@ -700,8 +700,6 @@ def test_nfts_a_max_is_the_advantage_clip_or_5_without_one():
      "--pick_path is read with --pick pickscore (real weights) only: --pick pickscore-tiny would ignore it"),
     (["--pick_processor_path", "/p"], [], ["--pick", "pickscore", "--pick_path", "/p", "--lambda_pick", "0.2"],
      "--pick_processor_path is read with --pick pickscore (real weights) only: --pick none would ignore it"),
-    (["--pick", "pickscore-tiny"], [], ["--lambda_pick", "0.2"],
-     "--pick is read with --lambda_pick > 0 (PickScore's weight) only: --lambda_pick 0 would ignore it"),
     (["--pick", "pickscore-tiny"], ["--stage", "distill", "--lambda_pick", "0.2"], ["--lambda_pick", "0.2"],
      "--pick is read with --stage rl only: --stage distill would ignore it"),
     (["--noise_level", "0.5"], [], ["--sampler", "sde"], "--noise_level is read with SDE rollouts"),
