@@ -1758,18 +1758,22 @@ def rl_stage(args: Args) -> dict:
 
 
 def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = ()) -> None:
-    """The bench scores at each evaluation beside the Demonstrator's, and a fourth panel for the collapse to still
-    videos: the share of still videos on the bench and, step by step from `steps` (rl.jsonl's Executor records), the
-    share of still training rollouts and their mean motion relative to the first 10 logged steps'."""
-    plt, fig, axes = bench.figure(4, width=4)
-    for ax, key in zip(axes, ("task", "consistency", "avg")):
+    """The bench scores at each evaluation beside the Demonstrator's -- task, consistency, their average with the
+    agent score and, where the run records it (--pick), PickScore: Fig. 4's two measures -- and a last panel for the
+    collapse to still videos: the share of still videos on the bench and, step by step from `steps` (rl.jsonl's
+    Executor records), the share of still training rollouts and their mean motion relative to the first 10 logged
+    steps'."""
+    keys = ("task", "consistency", "avg", *(("pick",) if all("pick" in e for e in evals) else ()))
+    plt, fig, axes = bench.figure(len(keys) + 1, width=4)
+    d = "the bench file's D" if args.eval_dataset else "toy VLM's D"
+    for ax, key in zip(axes, keys):
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
-        ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+        ax.axhline(demo[key], color="k", ls="--", lw=1, label=f"Demonstrator ({d})")
         ax.set_xlabel("RL step")
-        ax.set_ylabel(f"bench {key} score")
+        ax.set_ylabel("bench PickScore against T" if key == "pick" else f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    ax = axes[3]
+    ax = axes[len(keys)]
     if steps:
         x = [r["step"] for r in steps]
         ax.plot(x, [r["still"] / len(r["A"]) for r in steps], lw=1, label="training rollouts still")
@@ -1782,7 +1786,8 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = 
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.suptitle(f"{fig5_setting(args)} on {bench_title(args.eval_crowded)}: lambda_distill={args.lambda_distill}, "
+    where = os.path.basename(args.eval_dataset) if args.eval_dataset else bench_title(args.eval_crowded)
+    fig.suptitle(f"{fig5_setting(args)} on {where}: lambda_distill={args.lambda_distill}, "
                  f"beta_d={args.beta_d}, lambda_cons={args.lambda_cons}, seed {args.seed}\n"
                  f"Executor given {executor_given(args.executor_prompt)}")
     bench.save_figure(plt, fig, path)

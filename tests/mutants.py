@@ -677,6 +677,8 @@ MUTANTS = {
         ('            **({"r_pick": _mean(rewards["pick"])} if weighed_pick(args) is not None else {}),\n'
          '            "r_distill"', '            **({"r_pick": _mean(rewards["pick"])}),\n            "r_distill"',
          "r_pick logged where PickScore only measures"),
+        ('    keys = ("task", "consistency", "avg", *(("pick",) if all("pick" in e for e in evals) else ()))',
+         '    keys = ("task", "consistency", "avg")', "rl_curve.png without its PickScore panel"),
     ]),
     "train.py (the anchor alone)": ([f"tests/test_train.py::test_{name}" for name in (
             "with_no_reward_weighed_the_step_trains_the_anchor_alone", "bad_input_one_line_exit_2_nothing_written",

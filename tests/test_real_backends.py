@@ -936,6 +936,8 @@ def test_pickscore_scores_a_video_by_its_frames_and_is_table_3s_third_reward(tin
     recs = [json.loads(line) for line in open(tmp_path / "measure" / "rl.jsonl")]
     assert [x["step"] for x in recs if x.get("eval") and np.isfinite(x["pick"])] == [0, 1]
     assert not any("r_pick" in x for x in recs) and "| pick |" in r.stdout and "anchor alone" in r.stdout
+    from PIL import Image
+    assert Image.open(tmp_path / "measure" / "rl_curve.png").size[0] == 5 * 4 * 110    # a fifth panel: PickScore
     # bench.py --pick: the bench's videos scored against T, the weights from local directories; none there: an error
     import bench
     r = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--threads", "1", "--pick", "pickscore",
