@@ -1752,6 +1752,7 @@ def rl_stage(args: Args) -> dict:
     steps = [r for r in map(json.loads, open(os.path.join(args.run_dir, "rl.jsonl"))) if "motion" in r]
     plot_rl_curve(evals, demo, os.path.join(args.run_dir, "rl_curve.png"), args, steps)
     print("\n".join(table))
+    print("\n".join(f"the Executor: {line}" for line in bench.fig7_lines(final)))     # Fig. 7's two panels
     print(f"done in {summary['minutes']:.1f} min; wrote {out}, {args.run_dir}/rl.jsonl, state.pt, rl_curve.png, "
           f"rollouts_rl.gif, rl_summary.json")
     return summary

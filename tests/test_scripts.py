@@ -32,6 +32,7 @@ def test_rl_stage_smoke(tiny_ckpt, tmp_path, trainer, extra):
             "--inner_epochs", "2", "--run_dir", str(tmp_path), *extra)
     assert r.returncode == 0, r.stderr
     assert "step    2/2" in r.stdout and "ETA" in r.stdout and "| WMSD" in r.stdout
+    assert "the Executor: Fig. 7, task score by task type (over 5% of the bench): " in r.stdout      # 3 pairs: all
     if extra:
         assert "Demonstrator round" in r.stdout and "| trained Demonstrator phi" in r.stdout
     summary = json.load(open(tmp_path / "rl_summary.json"))
