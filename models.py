@@ -858,6 +858,16 @@ def _image_batch(frame0, height: int, width: int) -> torch.Tensor:
     return F_.interpolate(img, size=(height, width), mode="bilinear", align_corners=False)
 
 
+def _video_batch(video, frames: int, height: int, width: int) -> torch.Tensor:
+    """Videos (B, F, H, W, 3) uint8 -> (B, 3, F, height, width) in [-1, 1], each frame as _image_batch: a real
+    backend's VAE input. A video of another frame count than the model's `frames` is a ValueError."""
+    v = np.asarray(video)
+    if v.ndim != 5 or v.shape[1] != frames or v.shape[-1] != 3:
+        raise ValueError(f"videos of shape {v.shape}: this model takes (B, {frames}, H, W, 3), its {frames} frames")
+    B, F = v.shape[:2]
+    return _image_batch(v.reshape(B * F, *v.shape[2:]), height, width).reshape(B, F, 3, height, width).transpose(1, 2)
+
+
 @contextlib.contextmanager
 def resolution(model, height: int, width: int):
     """Inside this block a real backend conditions, samples and decodes at height x width, then at its own size
@@ -1116,6 +1126,15 @@ class LTX2Video(nn.Module):
         return -v_sigma                                                                 # d x / d t = -d x / d sigma
 
     @torch.no_grad()
+    def encode_video(self, video) -> torch.Tensor:
+        """Videos (B, F, H, W, 3) uint8 of the model's F frames -> x_1 (B, C, F_lat - 1, h, w): the normalised VAE
+        latents of the frames after the first, the state sampling ends in and decode reads (the causal VAE's first
+        latent frame is the first frame's, c's image latent). The +SFT baseline's data (train.py --sft_dataset)."""
+        dev = next(self.transformer.parameters()).device
+        img = _video_batch(video, self.frames, self.height, self.width).to(dev, self.vae.dtype)
+        return self._normalise(self.vae.encode(img).latent_dist.mode().float())[:, :, 1:]
+
+    @torch.no_grad()
     def decode(self, x_1: torch.Tensor, frame0) -> np.ndarray:
         """Latents of the generated frames -> uint8 video (B, F, H, W, 3), decoded together with the first frame."""
         z = self._normalise(torch.cat([self._image_latent(frame0), x_1.float()], dim=2), inverse=True)
@@ -1341,6 +1360,16 @@ class HunyuanVideo15(nn.Module):
             encoder_hidden_states_2=c["text_2"].to(dtype), encoder_attention_mask_2=c["mask_2"],
             image_embeds=c["image_embeds"].to(dtype), return_dict=False)[0]
         return -out.float()                                                # d x / d t = -d x / d sigma
+
+    @torch.no_grad()
+    def encode_video(self, video) -> torch.Tensor:
+        """Videos (B, F, H, W, 3) uint8 of the model's F frames -> x_1 (B, C, F_lat, h, w): the scaled VAE latents of
+        all latent frames, which this model denoises (frame 0's too), one video at a time as decode runs. The +SFT
+        baseline's data (train.py --sft_dataset)."""
+        dev = next(self.transformer.parameters()).device
+        img = _video_batch(video, self.frames, self.height, self.width).to(dev, self.vae.dtype)
+        z = torch.cat([self.vae.encode(img[i:i + 1]).latent_dist.mode() for i in range(len(img))]).float()
+        return z * self.vae.config.scaling_factor
 
     @torch.no_grad()
     def decode(self, x_1: torch.Tensor, frame0) -> np.ndarray:

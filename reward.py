@@ -487,16 +487,18 @@ class VLMJudge:
                                            "Yes", "No")]
 
     def generate(self, images, prompt: str, max_new_tokens: int = 512) -> list[str]:
-        """Greedy answers to a prompt about each still image (the task-solution generator, Sec. 4.1.1)."""
+        """Greedy answers to a prompt about each still image (H, W, 3) -- the task-solution generator, Sec. 4.1.1 --
+        or each video (F, H, W, 3), read as the judges read one (its frames in order; world.label_videos)."""
         import torch
 
         import models
         out = []
         for im in images:
-            frames = self._frames(np.asarray(im)[None])
+            im = np.asarray(im)
+            frames = self._frames(im if im.ndim == 4 else im[None])
             img = self.image_processor(images=frames, return_tensors="pt")
-            n = int(img["image_grid_thw"].prod(-1)[0]) // self.image_processor.merge_size ** 2
-            enc = self.tokenizer([self._chat([n], prompt)], return_tensors="pt")
+            per_image = (img["image_grid_thw"].prod(-1) // self.image_processor.merge_size ** 2).tolist()
+            enc = self.tokenizer([self._chat(per_image, prompt)], return_tensors="pt")
             mm = (enc.input_ids == self.ids["<|image_pad|>"]).long()
             with torch.no_grad(), models.visiting(self.model, self.device):
                 dev = self.model.device

@@ -40,6 +40,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 import torch.distributed as dist
+from PIL import Image
 
 import bench
 import distill
@@ -147,7 +148,12 @@ class Args:
     steps: int = 100
     """Executor (LoRA) optimizer steps per variant"""
     batch: int = 32
-    """(image, T, D) triples per step"""
+    """(image, T, D) triples per step (--variant sft: labelled videos)"""
+    sft_dataset: str = ""
+    """--variant sft on a real model (--model ltx2 / hunyuan15, -tiny, -random), Table 1's +SFT row: a JSONL file of
+    labelled videos, one {"video": FILE, "task": T} a line. FILE (relative: to the JSONL file's folder) is a .npy
+    array uint8 (F, H, W, 3) of the model's F frames, or an animated GIF, PNG or WebP; its frames are resized to the
+    model's size. The toy's SFT videos are the world's (world.sft_batch)"""
     lr: float = 1e-3
     """Adam learning rate of the LoRA weights (Table 3 uses 2e-4 on LTX-2; the toy's LoRA is tiny)"""
     lora_rank: int = 8
@@ -343,19 +349,19 @@ READ_BY = {
                      "p_goal", "p_task_words", "width", "evidence", "evidence_by_colour", "evidence_lead", "ground",
                      "relate", "relate_text", "point_weight", "point_goal_only"), ("pretrain",)),
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
-    **dict.fromkeys(("variant", "batch"), ("distill",)),
+    **dict.fromkeys(("variant", "batch", "sft_dataset"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
                      "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "train_crowded",
                      "eval_crowded", "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight",
-                     "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width"),
+                     "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width",
+                     "model_path", "offload_judge", "grad_checkpoint", "offload_text"),
                     ("distill", "rl")),
-    **dict.fromkeys(("toy_gpu", "model_path", "dataset", "offload_judge", "trainer", "group_size", "tasks_per_step",
-                     "grad_checkpoint", "offload_text", "sampler", "noise_level", "lambda_task", "task_reward",
-                     "lambda_distill", "distill_reward", "lambda_cons", "beta_d", "demonstrator", "adv_agg",
-                     "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every", "executor_ema_schedule",
-                     "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting", "ghuber_power",
-                     "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume", "executor_update",
-                     "pick", "pick_path", "pick_processor_path", "lambda_pick"),
+    **dict.fromkeys(("toy_gpu", "dataset", "trainer", "group_size", "tasks_per_step", "sampler", "noise_level",
+                     "lambda_task", "task_reward", "lambda_distill", "distill_reward", "lambda_cons", "beta_d",
+                     "demonstrator", "adv_agg", "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every",
+                     "executor_ema_schedule", "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
+                     "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume",
+                     "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick"),
                     ("rl",)),
     "stage": (), "toy": (),
 }
@@ -415,6 +421,10 @@ def unread_flags(args: Args) -> list:
            no_video_loss) for name in ("motion_weight", "loss_power")),
         ("train_steps", "the rl stage and --variant off, on or dmd (their rollouts)", f"--variant {args.variant}",
          no_rollouts),
+        *((name, "the toy's video loss (--model toy)", f"--model {args.model}", args.model != "toy")
+          for name in ("motion_weight", "loss_power")),
+        *((name, "--model toy (the toy VLM's pairs) in the distill stage", f"--model {args.model}",
+           args.stage == "distill" and args.model != "toy") for name in ("train_pairs", "train_crowded")),
         *((name, "RL rounds (--executor_update wmsd, or --alternate N's Demonstrator rounds)",
            "--executor_update off without --alternate", not judged)
           for name in ("trainer", *TRAINER_READS, "sampler", "lambda_task", "lambda_cons", "task_reward", "adv_agg",
@@ -542,8 +552,12 @@ def parse_args(argv=None) -> Args:
         p.error("--pick pickscore needs --pick_path (a local directory of PickScore; nothing is downloaded)")
     if args.lambda_pick > 0 and args.pick == "none":
         p.error("--lambda_pick weighs PickScore: it needs --pick pickscore (or pickscore-tiny)")
-    if (args.model != "toy" or args.judge != "toy") and args.stage != "rl":
-        p.error("--model and --judge other than toy are wired into the rl stage only")
+    if (args.model != "toy" or args.judge != "toy") and args.stage == "distill" and (
+            args.model == "toy" or args.variant != "sft" or not args.sft_dataset):
+        p.error("in the distill stage a real model (and a VLM judge, beside one) runs the +SFT baseline alone: "
+                "--variant sft --sft_dataset FILE; Fig. 4 left's variants run in the rl stage (README)")
+    if args.sft_dataset and args.model == "toy":
+        p.error("--sft_dataset holds a real model's SFT videos; the toy's are the world's (world.sft_batch)")
     if args.state_window:
         try:
             window = state_window(args)
@@ -584,8 +598,9 @@ def parse_args(argv=None) -> Args:
         p.error(f"--micro_batch must be >= 0 (0: no micro-batches), got {args.micro_batch}")
     if args.resume and args.stage != "rl":
         p.error("--resume continues an rl run from its state.pt; the pretrain and distill stages save no state")
-    if args.micro_batch and args.stage != "rl":
-        p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations: it needs --stage rl")
+    if args.micro_batch and args.stage != "rl" and args.model == "toy":
+        p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations, or a real model's SFT videos: "
+                "it needs --stage rl or --model other than toy")
     if args.grad_checkpoint and args.model == "toy":
         p.error("--grad_checkpoint is for a real model's transformer (--model ltx2 / hunyuan15 and their -tiny)")
     if args.offload_judge and args.judge == "toy":
@@ -601,8 +616,9 @@ def parse_args(argv=None) -> Args:
         p.error("--eval_n must be at most 200 (the toy bench's size)")
     if args.eval_crowded and args.eval_dataset:
         p.error("--eval_crowded is a toy bench and --eval_dataset another: give one")
-    if args.eval_dataset and args.stage != "rl":
-        p.error("--eval_dataset is the rl stage's bench: it needs --stage rl")
+    if args.eval_dataset and args.stage != "rl" and args.model == "toy":
+        p.error("--eval_dataset is the rl stage's bench, and a real model's +SFT run's: it needs --stage rl or --model "
+                "other than toy")
     if min(args.p_vague, args.p_empty, args.p_goal) < 0 or args.p_vague + args.p_empty + args.p_goal > 1:
         p.error("--p_vague, --p_empty, --p_goal must be >= 0 and sum to at most 1")
     try:
@@ -664,12 +680,14 @@ def _eta(start: float, done: int, total: int) -> str:
 
 def video_loss(model, videos: np.ndarray, captions: list[str], args: Args) -> torch.Tensor:
     """The flow-matching loss (App. A.9) on captioned world videos, weighted (1 - t)^loss_power and x motion_weight
-    on pixels that differ from the first frame: pretraining's loss, and the SFT baseline's. Draws x_0 and t from
-    torch's global generator."""
-    x_1 = model.encode_video(videos)                       # (B, T, 3, H, W) data
+    on pixels that differ from the first frame: pretraining's loss, and the SFT baseline's (on a real model's latents
+    unweighted). Draws x_0 and t from torch's global generator."""
+    x_1 = model.encode_video(videos)                       # (B, T, 3, H, W) data; a real model's latents
     c = model.condition(videos[:, 0], captions)
     x_0 = torch.randn_like(x_1)                            # noise
-    t = torch.rand(len(videos))                            # t ~ U[0, 1]
+    t = torch.rand(len(videos), device=x_1.device)         # t ~ U[0, 1]
+    if model.backend != "toy":     # a real model (the +SFT baseline): every t and latent alike; the paper gives no
+        return flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t)    # SFT loss, so this is ours
     w = (1 - t).clamp(min=model.cfg.min_one_minus_t).reshape(-1, 1, 1, 1, 1) ** args.loss_power \
         * models.moving_pixel_weight(x_1, c["frame0"], args.motion_weight)
     return flow.flow_matching_loss(lambda x, tt: model(x, tt, c), x_0, x_1, t, weight=w)
@@ -879,14 +897,16 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     return res
 
 
-def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> tuple:
+def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None) -> tuple:
     """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
     steps and at the last. at_0 is the base's evaluation given T (or --executor_prompt): a fresh LoRA (B = 0) is
-    the base exactly, so every variant's step 0 is that one evaluation. Returns (model, list of eval records)."""
+    the base exactly, so every variant's step 0 is that one evaluation. `base`: a real model, whose +SFT baseline
+    trains on `pairs`, --sft_dataset's rows (None: the toy base, loaded afresh). Returns (model, list of eval
+    records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    model, _ = models.load_checkpoint(args.init or None)
+    model = base if base is not None else models.load_checkpoint(args.init or None)[0]
     models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
     params = models.lora_parameters(model)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
@@ -908,17 +928,25 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
     for step in range(1, args.steps + 1):
         t0 = time.time()
         idx = rng.choice(len(pairs), args.batch, replace=False)
-        frame0, tasks, descs = _batch(pairs, idx, args.executor_prompt)
-        extra = {}
-        if variant == "sft":    # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
+        extra, loss = {}, None
+        if base is not None:    # Table 1's +SFT on a real model: its labelled videos, --micro_batch at a time (each
+            rows = [pairs[i] for i in idx]         # part draws its own x_0 and t: the same law as one pass)
+            videos = np.stack([world.load_video(r["video"], (model.width, model.height)) for r in rows])
+            m = args.micro_batch or len(rows)
+            parts = [SimpleNamespace(rows=slice(i, i + m), share=len(rows[i:i + m]) / len(rows))
+                     for i in range(0, len(rows), m)]
+            value, gnorm, _ = _update(step, opt, params, parts, lambda p: (video_loss(
+                model, videos[p.rows], [r["task"] for r in rows[p.rows]], args), {}), gen, "SFT")
+        elif variant == "sft":  # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
             videos, labels = world.sft_batch(rng, args.batch, args.train_crowded)
             loss = video_loss(model, videos, labels, args)
         elif variant == "paired":  # the costly supervision WMSD does without: correct executions labelled with T
             # (or with a control's prompt, --executor_prompt)
             ps = [pairs[i] for i in idx]
             videos = np.stack([world.render(p.scene, world.simulate(p.scene, p.plan_oracle)) for p in ps])
-            loss = video_loss(model, videos, tasks, args)
+            loss = video_loss(model, videos, _batch(pairs, idx, args.executor_prompt)[1], args)
         else:                   # the self-distillation objectives: Executor under c_E, Demonstrator under c_D
+            frame0, tasks, descs = _batch(pairs, idx, args.executor_prompt)
             c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
@@ -936,11 +964,13 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
                 fake_loss.backward()
                 fake_opt.step()
                 extra["fake_loss"] = fake_loss.item()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
-        opt.step()
-        rec = {"variant": variant, "step": step, "loss": loss.item(), "grad_norm": float(gnorm),
+        if loss is not None:    # the toy's step on the whole batch
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
+            opt.step()
+            value = loss.item()
+        rec = {"variant": variant, "step": step, "loss": value, "grad_norm": float(gnorm),
                "step_seconds": time.time() - t0, **extra}
         logf.write(json.dumps(rec) + "\n")
         if step % args.log_every == 0 or step == args.steps:
@@ -954,32 +984,44 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict) -> 
 def distill_stage(args: Args) -> dict:
     """Run each variant from the same base; plot task score vs step (Fig. 4 left) with the Demonstrator and the
     base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
-    # the toy benches and judges only (--eval_dataset and --judge are the rl stage's), whatever an rl run before it in
-    # this process set
+    # the toy's benches and judges, or a real model's own (--eval_dataset, --judge), whatever an rl run before it in
+    # this process set; no PickScore (the rl stage's)
     global BENCH, JUDGE, PICK
     BENCH, JUDGE, PICK = None, None, None
     seed_everything(args.seed, args.threads)
     os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()
-    pairs = toy_pairs(args)
-    print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}"
-          f"{', crowded scenes' if args.train_crowded else ''}) in {time.time() - t0:.0f} s")
-    base, _ = models.load_checkpoint(args.init or None)
-    demo = base_evaluation(base, args, demonstrator=True)
-    at_0 = base_evaluation(base, args)
-    print(f"{'On the crowded bench, the ' if args.eval_crowded else ''}Demonstrator (base given the toy VLM's D): "
+    if args.model != "toy":     # Table 1's +SFT row (parse_args lets a real model run nothing else here)
+        base = load_real(args)  # a bad model or file stops here, before anything is trained
+        pairs = sft_rows(args.sft_dataset, base, args.batch)
+        JUDGE, BENCH = make_judge(args), load_bench(args, base, [])
+        print(f"{len(pairs)} labelled videos from {args.sft_dataset}")
+    else:
+        pairs = toy_pairs(args)
+        print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}"
+              f"{', crowded scenes' if args.train_crowded else ''}) in {time.time() - t0:.0f} s")
+        base = None
+    net = base if base is not None else models.load_checkpoint(args.init or None)[0]
+    demo = base_evaluation(net, args, demonstrator=True)
+    at_0 = base_evaluation(net, args)
+    d = "the bench file's D" if BENCH is not None else "the toy VLM's D"
+    print(f"{'On the crowded bench, the ' if args.eval_crowded else ''}Demonstrator (base given {d}): "
           f"task {demo['task']:.3f} agent {demo['agent']:.3f} "
           f"consistency {demo['consistency']:.3f}")
     variants = args.variant.split(",")
     results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
-               "executor_prompt": args.executor_prompt, "bench": "crowded" if args.eval_crowded else "toy"}
+               "executor_prompt": args.executor_prompt,
+               "bench": args.eval_dataset or ("crowded" if args.eval_crowded else "toy")}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:
-            model, evals = distill_variant(args, v, pairs, logf, at_0)
+            model, evals = distill_variant(args, v, pairs, logf, at_0, base)
             results["variants"][v] = evals
             out = args.out or os.path.join(args.run_dir, f"executor_{v}.pt")
-            models.save_checkpoint(models.merge_lora(model), out,  # LoRA folded in: loadable by bench.py
-                                   {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)})
+            meta = {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)}
+            if base is None:    # LoRA folded in: loadable by bench.py
+                models.save_checkpoint(models.merge_lora(model), out, meta)
+            else:               # a real model: the LoRA alone (bench.py --lora)
+                models.save_lora(model, out, meta)
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
     plot_fig4_left(results, os.path.join(args.run_dir, "fig4_left.png"))
     with open(os.path.join(args.run_dir, "distill_summary.json"), "w") as f:
@@ -993,13 +1035,16 @@ def plot_fig4_left(results: dict, path: str) -> None:
     for ax, key in zip(axes, ("task", "avg")):
         for v, evals in results["variants"].items():
             ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor, {v}")
-        ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1, label="Demonstrator (toy VLM's D)")
+        ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1, label="Demonstrator (" + (
+            "toy VLM's D)" if results.get("bench", "toy") in ("toy", "crowded") else "the bench file's D)"))
         ax.set_xlabel("training step")
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     given = executor_given(results.get("executor_prompt", "task"))
-    fig.suptitle(f"Self-distillation variants on {bench_title(results.get('bench') == 'crowded')} (paper Fig. 4 "
+    where = results.get("bench", "toy")
+    where = bench_title(where == "crowded") if where in ("toy", "crowded") else os.path.basename(where)
+    fig.suptitle(f"Self-distillation variants on {where} (paper Fig. 4 "
                  f"left)\nExecutor given {given}")
     bench.save_figure(plt, fig, path)
 
@@ -1010,7 +1055,6 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, docs/real-models.md).
     Only the toy's 16-px rows are enlarged (8x); the scale once came from the first frames, which are the toy
     bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured)."""
-    from PIL import Image
     pairs = eval_pairs(args)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     batch = args.micro_batch or n
@@ -1496,6 +1540,11 @@ def load_base(args: Args):
     if args.model == "toy":
         model = models.load_checkpoint(args.init or None)[0]
         return model.to("cuda") if args.toy_gpu else model
+    return load_real(args)
+
+
+def load_real(args: Args):
+    """A real --model (or its tiny or random stand-in), on the GPU where there is one, with its memory flags."""
     cuda = torch.cuda.is_available()   # a real model, or its tiny or random stand-in, runs on the GPU when there is one
     if args.model.endswith("-tiny"):
         model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
@@ -1529,7 +1578,6 @@ def dataset_pairs(path: str, model, need: int, flag: str, size: tuple | None = N
     """The rows of a WorldTasks JSONL file as (image, T, D) pairs, the images resized to the model's resolution (or
     to `size`, (width, height): a bench evaluated at another, --eval_height); a clear error naming the line of a bad
     row, or if there are fewer than `need` rows (`flag` asks for them)."""
-    from PIL import Image
     size = size or (getattr(model, "width", world.W), getattr(model, "height", world.H))     # (width, height)
     rows = world.load_dataset(path)
     for r in rows:   # what the model would refuse mid-run, said now with its line
@@ -1559,6 +1607,31 @@ def task_groups(row: dict) -> dict:
     return dict(family=family, agent_type=agent_type, agent=world.split_task(row["task"])[0])
 
 
+def sft_rows(path: str, model, need: int) -> list[dict]:
+    """--sft_dataset's rows, {"video": path, "task": T}, every one checked before training starts: JSON with the two
+    fields, a video file (world.video_length) of the model's frame count, a task the model's text path takes. A bad
+    row is a ValueError naming its line; fewer than `need` rows (--batch) is one too."""
+    rows = []
+    with open(path) as f:
+        for i, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:
+                r = json.loads(line)
+                if not (isinstance(r, dict) and isinstance(r.get("video"), str) and isinstance(r.get("task"), str)):
+                    raise ValueError('a row is {"video": FILE, "task": T}')
+                r = {"video": os.path.join(os.path.dirname(path), r["video"]), "task": r["task"]}
+                if (n := world.video_length(r["video"])) != model.frames:
+                    raise ValueError(f"{r['video']} has {n} frames; the model makes {model.frames}")
+                model.check_prompts([r["task"]])
+            except (ValueError, OSError) as e:        # a JSON error is a ValueError; a missing or unread file, OSError
+                raise ValueError(f"{path} line {i}: {e}") from None
+            rows.append(r)
+    if len(rows) < need:
+        raise ValueError(f"--sft_dataset {path!r} has {len(rows)} videos, fewer than --batch {need}")
+    return rows
+
+
 def load_bench(args: Args, model, train: list) -> list | None:
     """--eval_dataset's first --eval_n rows, the bench every evaluation uses; None: the toy bench. A row that is
     also a training row of `train` (load_pairs; same image and task) is an error: the bench is held out."""
@@ -1566,12 +1639,12 @@ def load_bench(args: Args, model, train: list) -> list | None:
         return None
     size = (args.eval_width, args.eval_height) if args.eval_height else None     # the frames at the bench's size
     pairs = dataset_pairs(args.eval_dataset, model, args.eval_n, "--eval_n", size)[:args.eval_n]
-    if args.dataset:
+    if train:       # --dataset's rows (the toy VLM's pairs and SFT videos have no image file to share)
         train_rows = {(p.image, p.task.text) for p in train}
         shared = [p for p in pairs if (p.image, p.task.text) in train_rows]
         if shared:
-            raise ValueError(f"{len(shared)} of the {len(pairs)} bench rows of {args.eval_dataset!r} are also in "
-                             f"--dataset {args.dataset!r} (first: {shared[0].task.text!r}); the bench must be held out")
+            raise ValueError(f"{len(shared)} of the {len(pairs)} bench rows of {args.eval_dataset!r} are also "
+                             f"--dataset rows (first: {shared[0].task.text!r}); the bench must be held out")
     return pairs
 
 
@@ -1599,7 +1672,7 @@ def rl_stage(args: Args) -> dict:
             pass
     JUDGE, PICK = make_judge(args), make_pick(args)
     pairs = load_pairs(args, model)
-    BENCH = load_bench(args, model, pairs)
+    BENCH = load_bench(args, model, pairs if args.dataset else [])
     if BENCH is None and args.model != "toy":
         say("note: no --eval_dataset, so this real model is evaluated on the toy bench's sprite frames", flush=True)
     if rank0:

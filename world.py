@@ -968,6 +968,76 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     return counts
 
 
+def video_length(path: str) -> int:
+    """How many frames a video file holds, from its header: a .npy array uint8 (F, H, W, 3), or an image PIL reads
+    (an animated GIF, PNG or WebP; a still image is one frame). A ValueError for a .npy of another kind, an OSError
+    for a file PIL cannot read (an mp4 among them: convert it to .npy or an animated image)."""
+    from PIL import Image
+    if path.endswith(".npy"):
+        v = np.load(path, mmap_mode="r")          # no pickles, nothing read but the header
+        if v.dtype != np.uint8 or v.ndim != 4 or v.shape[-1] != 3:
+            raise ValueError(f"{path}: a .npy video is uint8 (F, H, W, 3), not {v.dtype} {v.shape}")
+        return len(v)
+    with Image.open(path) as img:
+        return getattr(img, "n_frames", 1)
+
+
+def load_video(path: str, size: tuple | None = None) -> np.ndarray:
+    """A video file (video_length's kinds, checked as it checks them) -> uint8 (F, H, W, 3), each frame bilinear to
+    size = (width, height) if given."""
+    from PIL import Image, ImageSequence
+    video_length(path)
+    if path.endswith(".npy"):
+        frames = [Image.fromarray(f) for f in np.load(path)]
+    else:
+        with Image.open(path) as img:
+            frames = [f.convert("RGB") for f in ImageSequence.Iterator(img)]
+    return np.stack([np.asarray(f.resize(size, Image.BILINEAR) if size else f) for f in frames])
+
+
+VIDEO_TASK_PROMPT = (  # ours: the paper says only that unannotated videos are labelled with tasks (Sec. 4.4, +SFT)
+    "You are given the frames of a video in temporal order. Write the one short task that the video shows an agent "
+    "carrying out, as the instruction that agent could have been given. Name the agent as it appears; for the "
+    "camera's own motion, write [First-person view]. Answer exactly in this format, nothing else:\n"
+    "[agent]: instruction")
+
+
+def label_videos(video_paths: list[str], vlm, out_path: str) -> dict:
+    """Sec. 4.4's +SFT data (Table 1's "+SFT" row): unannotated videos labelled by the VLM with the task each shows,
+    "[agent]: instruction" (VIDEO_TASK_PROMPT, ours), written as the JSONL that train.py --sft_dataset reads
+    ({"video", "task"}, paths relative to the file). `vlm` needs generate(videos, prompt) -> list[str]
+    (reward.VLMJudge). A video that cannot be read, or whose answer holds no task, is dropped and counted. Returns
+    {"videos", "labelled", "unreadable", "malformed"}."""
+    import json
+    import os
+    counts = {"videos": len(video_paths), "labelled": 0, "unreadable": 0, "malformed": 0}
+    base, rows = os.path.dirname(os.path.abspath(out_path)), []
+    for p in video_paths:                     # one video in memory at a time
+        try:
+            video = load_video(p)
+        except (OSError, ValueError):
+            counts["unreadable"] += 1
+            continue
+        answer, task = vlm.generate([video], VIDEO_TASK_PROMPT)[0], None
+        for line in answer.splitlines():      # the first line that holds a task, from its opening bracket
+            try:
+                task = " ".join(line[line.index("["):].split())    # ValueError: no bracket on this line
+                split_task(task)
+                break
+            except ValueError:
+                task = None
+        if task is None:
+            counts["malformed"] += 1
+            continue
+        rows.append({"video": os.path.relpath(os.path.abspath(p), base), "task": task})
+    tmp = f"{out_path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in rows)
+    os.replace(tmp, out_path)
+    counts["labelled"] = len(rows)
+    return counts
+
+
 def main(argv=None) -> None:
     """`python world.py`: the first bench pairs as the simulator solves them, and their T and D; or, with
     --composition, the toy's Fig. 3."""

@@ -1042,3 +1042,145 @@ def test_a_real_models_rollout_gif_is_thinned_not_enlarged(tmp_path):
     train.write_rollout_gif(m, str(tmp_path / "g.gif"), train.Args(model="ltx2-tiny", sample_steps=1), n=2)
     gif = Image.open(tmp_path / "g.gif")
     assert gif.size == (2 * 128 + 2 * 2, 2 * 128) and gif.n_frames <= 24
+
+
+@pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15], ids=["ltx2", "hunyuan15"])
+def test_a_real_model_encodes_a_video_into_the_state_it_decodes(cls):
+    """encode_video, the +SFT baseline's data: a video becomes the state x_1 that sampling ends in (latent_shape),
+    which decode turns back into the VAE's own round trip of the video (encode, decode, frame 0 the given one). So
+    the latents are normalised as decode reads them, and the latent frames kept are the ones the model generates.
+    Frames of another size are resized to the model's; another frame count is an error."""
+    m = cls.tiny(world.VOCAB + ["[", "]:"], seed=0)
+    video = np.random.default_rng(0).integers(0, 256, (2, m.frames, 24, 40, 3), dtype=np.uint8)
+    x_1 = m.encode_video(video)
+    assert x_1.shape == (2, *m.latent_shape())
+    img = models._video_batch(video, m.frames, m.height, m.width)
+    assert img.shape == (2, 3, m.frames, m.height, m.width)
+    with torch.no_grad():
+        raw = torch.cat([m.vae.decode(m.vae.encode(img[i:i + 1]).latent_dist.mode(), return_dict=False)[0]
+                         for i in range(2)]).float()
+    want = models._with_first_frame(raw, video[:, 0])
+    assert np.abs(m.decode(x_1, video[:, 0]).astype(int) - want).max() <= 1
+    with pytest.raises(ValueError, match=f"this model takes \\(B, {m.frames}, H, W, 3\\)"):
+        m.encode_video(video[:, :-1])
+
+
+def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_videos(tmp_path, monkeypatch):
+    """Table 1's +SFT row on a real model (train.py --stage distill --variant sft --sft_dataset FILE): the
+    flow-matching loss (App. A.9, unweighted) on the file's videos, encoded by the model (encode_video) and
+    conditioned on their first frame and task; every row checked before training, a bad one a clear error naming
+    its line; the run trains the LoRA, --micro_batch videos a pass, and saves it for bench.py --lora."""
+    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=0)
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "v0.npy", rng.integers(0, 256, (m.frames, 24, 40, 3), dtype=np.uint8))
+    np.save(tmp_path / "v1.npy", rng.integers(0, 256, (m.frames, m.height, m.width, 3), dtype=np.uint8))
+    frames = [Image.fromarray(rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)) for _ in range(m.frames)]
+    frames[0].save(tmp_path / "g.gif", save_all=True, append_images=frames[1:], loop=0)
+    tasks = ["[red square]: move right", "[blue circle]: go to the left edge", "[first-person view]: look up"]
+    path = tmp_path / "sft.jsonl"
+    path.write_text("".join(json.dumps({"video": v, "task": t}) + "\n" for v, t in zip(("v0.npy", "v1.npy", "g.gif"),
+                                                                                      tasks)))
+    rows = train.sft_rows(str(path), m, 3)
+    assert [r["video"] for r in rows] == [str(tmp_path / f) for f in ("v0.npy", "v1.npy", "g.gif")]
+    videos = np.stack([world.load_video(r["video"], (m.width, m.height)) for r in rows])
+    assert videos.shape == (3, m.frames, m.height, m.width, 3)
+    assert np.array_equal(videos[1], np.load(tmp_path / "v1.npy"))                       # at the model's size: as is
+    assert np.array_equal(videos[2, 1], np.asarray(frames[1].resize((m.width, m.height), Image.BILINEAR)))
+    torch.manual_seed(3)
+    got = train.video_loss(m, videos, tasks, train.Args())
+    torch.manual_seed(3)
+    x_1, c = m.encode_video(videos), m.condition(videos[:, 0], tasks)
+    x_0 = torch.randn_like(x_1)
+    t = torch.rand(3)
+    x_t = (1 - t).view(-1, 1, 1, 1, 1) * x_0 + t.view(-1, 1, 1, 1, 1) * x_1
+    with torch.no_grad():
+        assert torch.allclose(got, (m(x_t, t, c) - (x_1 - x_0)).pow(2).mean())
+    # bad rows, each named by its line
+    np.save(tmp_path / "short.npy", np.zeros((m.frames - 1, 8, 8, 3), np.uint8))
+    np.save(tmp_path / "floats.npy", np.zeros((m.frames, 8, 8, 3), np.float32))
+    (tmp_path / "clip.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")
+    good = json.dumps({"video": "v1.npy", "task": tasks[0]})
+    for bad, msg in (("{", "line 2: Expecting property name"), (json.dumps({"video": "v1.npy"}), 'a row is {"video"'),
+                     (json.dumps({"video": "none.npy", "task": "x"}), "line 2: [Errno 2] No such file"),
+                     (json.dumps({"video": "short.npy", "task": "x"}), f"has {m.frames - 1} frames; the model makes"),
+                     (json.dumps({"video": "floats.npy", "task": "x"}), "a .npy video is uint8 (F, H, W, 3), not float32"),
+                     (json.dumps({"video": "clip.mp4", "task": "x"}), "line 2: cannot identify image file")):
+        (tmp_path / "bad.jsonl").write_text(good + "\n" + bad + "\n")
+        with pytest.raises(ValueError) as e:
+            train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
+        assert msg in str(e.value) and str(e.value).startswith(str(tmp_path / "bad.jsonl")), (bad, str(e.value))
+    (tmp_path / "bad.jsonl").write_text(json.dumps({"video": "v1.npy", "task": "[red square]: " + "go " * 300}))
+    with pytest.raises(ValueError, match="line 1: prompt .* tokens; LTX-2's text path takes at most"):
+        train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
+    with pytest.raises(ValueError, match="has 3 videos, fewer than --batch 4"):
+        train.sft_rows(str(path), m, 4)
+    # a step: each video with its own task, --micro_batch videos a pass
+    seen = []
+
+    def recording(model, videos, captions, args):
+        seen.append((videos.copy(), list(captions)))
+        return sum(p.sum() for p in models.lora_parameters(model)) * 0.0
+    monkeypatch.setattr(train, "video_loss", recording)
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: {k: 0.0 for k in train.EVAL_KEYS})
+    monkeypatch.setattr(train, "write_rollout_gif", lambda *a, **k: None)
+    train.main(["--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset", str(path),
+                "--steps", "1", "--batch", "3", "--micro_batch", "2", "--threads", "1", "--run_dir", str(tmp_path / "r")])
+    assert [len(c) for _, c in seen] == [2, 1]
+    for vs, cs in seen:
+        for v, c in zip(vs, cs):
+            assert c == tasks[next(i for i in range(3) if np.array_equal(v, videos[i]))]
+    monkeypatch.undo()
+    # the run
+    d, held = tmp_path / "run", _toy_dataset(tmp_path / "held", 2, seed=6)     # evaluated on a WorldTasks file
+    r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset", str(path),
+            "--steps", "2", "--batch", "3", "--micro_batch", "2", "--eval_every", "1", "--eval_n", "2",
+            "--log_every", "1", "--sample_steps", "2", "--threads", "1", "--judge", "qwen-vl-tiny", "--eval_dataset",
+            held, "--grad_checkpoint", "--offload_text", "--run_dir", str(d))
+    assert r.returncode == 0, r.stderr
+    assert "Demonstrator (base given the bench file's D)" in r.stdout
+    assert json.load(open(d / "distill_summary.json"))["bench"] == held
+    recs = [json.loads(line) for line in open(d / "distill.jsonl")]
+    assert [x["step"] for x in recs if x.get("eval")] == [0, 1, 2]
+    steps = [x for x in recs if not x.get("eval")]
+    assert len(steps) == 2 and all(np.isfinite(x["loss"]) and x["grad_norm"] > 0 for x in steps)
+    saved = torch.load(d / "executor_sft.pt", weights_only=True)
+    assert saved["meta"]["variant"] == "sft" and any(v.abs().sum() > 0 for k, v in saved["lora"].items()
+                                                     if "lora_B" in k)                   # B starts at 0: trained
+    assert "3 labelled videos from" in r.stdout and (d / "rollouts_sft.gif").exists()
+    r = run("bench.py", "--model", "ltx2-tiny", "--lora", str(d / "executor_sft.pt"), "--n", "2", "--steps", "2")
+    assert r.returncode == 0 and "2 steps of --model ltx2-tiny" in r.stdout, r.stderr
+
+
+def test_label_videos_writes_the_sft_file_from_the_vlms_answers(tmp_path):
+    """world.label_videos, Sec. 4.4's +SFT data: each unannotated video given to the VLM with VIDEO_TASK_PROMPT, the
+    first "[agent]: instruction" line of its answer kept as the video's task, an answer with none or a file that is
+    no video dropped and counted; the file it writes is what train.py --sft_dataset reads. The tiny Qwen3-VL's
+    generate takes a video (its frames, as the judges read them) as well as a still image."""
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        np.save(tmp_path / f"v{i}.npy", rng.integers(0, 256, (5, 32, 32, 3), dtype=np.uint8))
+    (tmp_path / "clip.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")
+
+    class VLM:
+        asked = []
+
+        def generate(self, videos, prompt):
+            self.asked.append((np.asarray(videos[0]).shape, prompt))
+            return [{0: "Sure.\nTask: [Red car]:  park   beside the curb.", 1: "I cannot tell.",
+                     2: "[First-person view]: look up"}[len(self.asked) - 1]]
+    out = tmp_path / "sub" / "sft.jsonl"
+    out.parent.mkdir()
+    counts = world.label_videos([str(tmp_path / f) for f in ("v0.npy", "v1.npy", "clip.mp4", "v2.npy")], VLM(),
+                                str(out))
+    assert counts == {"videos": 4, "labelled": 2, "unreadable": 1, "malformed": 1}
+    assert VLM.asked[0] == ((5, 32, 32, 3), world.VIDEO_TASK_PROMPT) and len(VLM.asked) == 3
+    rows = [json.loads(line) for line in open(out)]
+    assert rows == [{"video": "../v0.npy", "task": "[Red car]: park beside the curb."},
+                    {"video": "../v2.npy", "task": "[First-person view]: look up"}]
+    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=0)                      # 5 frames a video
+    assert [r["video"] for r in train.sft_rows(str(out), m, 2)] == [str(tmp_path / "sub" / "../v0.npy"),
+                                                                   str(tmp_path / "sub" / "../v2.npy")]
+    judge = reward.VLMJudge.tiny([])
+    answers = judge.generate([np.load(tmp_path / "v0.npy"), np.load(tmp_path / "v0.npy")[0]], "Which task?",
+                             max_new_tokens=3)
+    assert len(answers) == 2 and all(isinstance(a, str) for a in answers)

@@ -412,8 +412,14 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--lambda_pick", "0.2"], "--lambda_pick weighs PickScore: it needs --pick pickscore"),
                       (["--pick", "clip"], "--pick: unknown 'clip'; choose from none, pickscore, pickscore-tiny"),
                       (["--pick", "pickscore-tiny", "--lambda_pick", "-1"], "--lambda_pick must be >= 0"),
-                      (["--stage", "distill", "--judge", "qwen-vl-tiny"], "wired into the rl stage only"),
-                      (["--stage", "distill", "--model", "ltx2-tiny"], "wired into the rl stage only"),
+                      (["--stage", "distill", "--judge", "qwen-vl-tiny"], "runs the +SFT baseline alone: --variant"),
+                      (["--stage", "distill", "--model", "ltx2-tiny"], "runs the +SFT baseline alone: --variant sft"),
+                      (["--stage", "distill", "--model", "ltx2-tiny", "--variant", "on,sft", "--sft_dataset", "f"],
+                       "runs the +SFT baseline alone"),
+                      (["--stage", "distill", "--model", "ltx2-tiny", "--variant", "sft"], "--sft_dataset FILE;"),
+                      (["--stage", "distill", "--variant", "sft", "--sft_dataset", "f"],
+                       "--sft_dataset holds a real model's SFT videos; the toy's are the world's"),
+                      (["--stage", "distill", "--micro_batch", "2"], "--micro_batch splits the rl stage's rollouts"),
                       (["--distill_reward", "per_step"], "--distill_reward per_step gives each transition"),
                       (["--trainer", "flow-grpo", "--distill_reward", "per_step", "--lambda_distill", "0"],
                        "--distill_reward per_step gives each transition"),
@@ -711,6 +717,12 @@ def test_nfts_a_max_is_the_advantage_clip_or_5_without_one():
      "--motion_weight is read with --stage pretrain, or --variant sft or paired (their video loss) only: --variant"),
     (["--loss_power", "2"], ["--stage", "distill"], ["--stage", "distill", "--variant", "paired"],
      "--loss_power is read"),
+    *((flag, ["--stage", "distill", "--model", "ltx2-tiny", "--variant", "sft", "--sft_dataset", "f"],
+       ["--stage", "distill", "--variant", "sft"],
+       f"{flag[0]} is read with the toy's video loss (--model toy) only: --model ltx2-tiny would ignore it")
+      for flag in (["--motion_weight", "5"], ["--loss_power", "2"])),
+    (["--train_pairs", "64"], ["--stage", "distill", "--model", "ltx2-tiny", "--variant", "sft", "--sft_dataset", "f"],
+     ["--model", "ltx2-tiny"], "--train_pairs is read with --model toy (the toy VLM's pairs) in the distill stage only"),
     (["--train_steps", "3"], ["--stage", "distill", "--variant", "sft,paired"],
      ["--stage", "distill", "--variant", "dmd"],
      "--train_steps is read with the rl stage and --variant off, on or dmd (their rollouts) only: --variant sft"),
@@ -920,7 +932,7 @@ def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(
     class Handed(Exception):
         pass
 
-    def handed(args, variant, pairs, logf, at_0):
+    def handed(args, variant, pairs, logf, at_0, base=None):
         raise Handed(pairs)
 
     monkeypatch.setattr(train, "distill_variant", handed)
