@@ -666,6 +666,8 @@ MUTANTS = {
          '        JUDGE, BENCH = make_judge(args), None', "--eval_dataset not reaching the +SFT run"),
         ('    if args.micro_batch and args.stage != "rl" and args.model == "toy":', '    if False:',
          "--micro_batch in the toy's distill stage accepted"),
+        ('    if len(rows) < need:\n        raise ValueError(f"--sft_dataset',
+         '    if False:\n        raise ValueError(f"--sft_dataset', "an SFT file with fewer videos than --batch accepted"),
     ]),
     "world.py (+SFT data)": (SFT, [
         ('                task = " ".join(line[line.index("["):].split())', '                task = " ".join(line.split())',
@@ -1118,8 +1120,6 @@ MUTANTS = {
          '    if False:\n', 'rollouts not divisible by the processes accepted'),
         ('    if len(rows) < need:\n        raise ValueError(f"dataset',
          '    if False:\n        raise ValueError(f"dataset', 'a dataset with fewer rows than needed accepted'),
-        ('    if len(rows) < need:\n        raise ValueError(f"--sft_dataset',
-         '    if False:\n        raise ValueError(f"--sft_dataset', "an SFT file with fewer videos than --batch accepted"),
         ('        if shared:\n',
          '        if False:\n', 'a bench that shares rows with --dataset accepted'),
         ('    if bad.any():\n        raise TrainingFault',
