@@ -916,6 +916,16 @@ def aesthetic_top(scores, keep: float = AESTHETIC_KEEP) -> np.ndarray:
     return np.sort(np.argsort(-scores, kind="stable")[:n])
 
 
+def write_jsonl(path: str, rows: list[dict]) -> None:
+    """`rows` as JSON lines, written whole: to a temporary file, then renamed, so a run cut short leaves no half file."""
+    import json
+    import os
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in rows)
+    os.replace(tmp, path)
+
+
 def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int = 8, aesthetic=None) -> dict:
     """Sec. 4.1.1 / App. A.6 end to end: the image-quality filter, the aesthetic ranking (with a scorer such as
     CLIPAesthetic: keep the top 90% of what passed), the VLM suitability filter (Fig. 12), and `per_image`
@@ -924,7 +934,6 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     None], generate(images, prompt) -> list[str] and choose(prompts, n) -> list[int | None] (reward.VLMJudge has all
     three). Returns counts of what was kept and why the rest was dropped, and of the rows the taxonomy could not
     label (an answer that was no category's number: "taxonomy malformed")."""
-    import json
     import os
 
     from PIL import Image
@@ -960,10 +969,7 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     for r, types in zip(rows, classify_tasks(vlm, [r["task"] for r in rows])):
         r.update(types)
     counts["taxonomy malformed"] = sum(None in (r["agent_type"], r["task_type"]) for r in rows)
-    tmp = f"{out_path}.tmp{os.getpid()}"
-    with open(tmp, "w") as f:
-        f.writelines(json.dumps(r) + "\n" for r in rows)
-    os.replace(tmp, out_path)
+    write_jsonl(out_path, rows)
     counts["pairs"] = len(rows)
     return counts
 
@@ -1008,7 +1014,6 @@ def label_videos(video_paths: list[str], vlm, out_path: str) -> dict:
     ({"video", "task"}, paths relative to the file). `vlm` needs generate(videos, prompt) -> list[str]
     (reward.VLMJudge). A video that cannot be read, or whose answer holds no task, is dropped and counted. Returns
     {"videos", "labelled", "unreadable", "malformed"}."""
-    import json
     import os
     counts = {"videos": len(video_paths), "labelled": 0, "unreadable": 0, "malformed": 0}
     base, rows = os.path.dirname(os.path.abspath(out_path)), []
@@ -1030,10 +1035,7 @@ def label_videos(video_paths: list[str], vlm, out_path: str) -> dict:
             counts["malformed"] += 1
             continue
         rows.append({"video": os.path.relpath(os.path.abspath(p), base), "task": task})
-    tmp = f"{out_path}.tmp{os.getpid()}"
-    with open(tmp, "w") as f:
-        f.writelines(json.dumps(r) + "\n" for r in rows)
-    os.replace(tmp, out_path)
+    write_jsonl(out_path, rows)
     counts["labelled"] = len(rows)
     return counts
 
