@@ -989,7 +989,6 @@ def distill_stage(args: Args) -> dict:
     global BENCH, JUDGE, PICK
     BENCH, JUDGE, PICK = None, None, None
     seed_everything(args.seed, args.threads)
-    os.makedirs(args.run_dir, exist_ok=True)
     t0 = time.time()
     if args.model != "toy":     # Table 1's +SFT row (parse_args lets a real model run nothing else here)
         base = load_real(args)  # a bad model or file stops here, before anything is trained
@@ -1001,6 +1000,7 @@ def distill_stage(args: Args) -> dict:
         print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}"
               f"{', crowded scenes' if args.train_crowded else ''}) in {time.time() - t0:.0f} s")
         base = None
+    os.makedirs(args.run_dir, exist_ok=True)     # after the inputs are read: a bad one leaves no empty run dir
     net = base if base is not None else models.load_checkpoint(args.init or None)[0]
     demo = base_evaluation(net, args, demonstrator=True)
     at_0 = base_evaluation(net, args)

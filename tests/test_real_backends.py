@@ -1118,6 +1118,9 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
         train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
     with pytest.raises(ValueError, match="has 3 videos, fewer than --batch 4"):
         train.sft_rows(str(path), m, 4)
+    r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset",
+            str(tmp_path / "none.jsonl"), "--run_dir", str(tmp_path / "none"))
+    assert r.returncode == 2 and "No such file or directory" in r.stderr and not (tmp_path / "none").exists()
     # a step: each video with its own task, --micro_batch videos a pass
     seen = []
 
