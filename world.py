@@ -917,9 +917,11 @@ def aesthetic_top(scores, keep: float = AESTHETIC_KEEP) -> np.ndarray:
 
 
 def write_jsonl(path: str, rows: list[dict]) -> None:
-    """`rows` as JSON lines, written whole: to a temporary file, then renamed, so a run cut short leaves no half file."""
+    """`rows` as JSON lines, written whole: to a temporary file, then renamed, so a run cut short leaves no half file.
+    Missing folders on the way are made."""
     import json
     import os
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w") as f:
         f.writelines(json.dumps(r) + "\n" for r in rows)
@@ -1042,7 +1044,7 @@ def label_videos(video_paths: list[str], vlm, out_path: str) -> dict:
 
 def main(argv=None) -> None:
     """`python world.py`: the first bench pairs as the simulator solves them, and their T and D; or, with
-    --composition, the toy's Fig. 3."""
+    --composition, the toy's Fig. 3; or, with --worldtasks or --label_videos and a VLM, a real dataset file."""
     import argparse
 
     import bench        # bench imports this module: here, not at the top
@@ -1057,9 +1059,37 @@ def main(argv=None) -> None:
     p.add_argument("--dataset", action="append", default=None, metavar="JSONL",
                    help="with --composition: a WorldTasks JSONL file's composition instead of the toy's, one split "
                         "per file (repeat the flag: the training split, then the bench)")
+    p.add_argument("--worldtasks", nargs="+", default=None, metavar="IMAGE",
+                   help="write the WorldTasks JSONL file --out from these images (make_worldtasks: App. A.6's "
+                        "filters, the VLM's task-solution pairs, the taxonomy)")
+    p.add_argument("--label_videos", nargs="+", default=None, metavar="VIDEO",
+                   help="write the +SFT file --out that train.py --sft_dataset reads: these videos (.npy, GIF, PNG, "
+                        "WebP), each labelled by the VLM with the task it shows (label_videos)")
+    p.add_argument("--judge", default="qwen-vl", choices=("qwen-vl", "qwen-vl-tiny"),
+                   help="with --worldtasks or --label_videos: the VLM (qwen-vl: --judge_path; qwen-vl-tiny: random "
+                        "weights, for checks)")
+    p.add_argument("--judge_path", default="", help="--judge qwen-vl: the local transformers directory")
     a = p.parse_args(argv)
     if a.dataset and not a.composition:
         p.error("--dataset is read with --composition only")
+    build = "worldtasks" if a.worldtasks else "label_videos" if a.label_videos else None
+    if (a.judge != "qwen-vl" or a.judge_path) and not build:
+        p.error("--judge and --judge_path are read with --worldtasks or --label_videos only")
+    if build:
+        if a.worldtasks and a.label_videos or a.composition or a.n is not None:
+            p.error("--worldtasks and --label_videos each write one file: not with each other, --composition or --n")
+        if not a.out or (bad := bench.output_path_error(a.out, "--out", suffix=".jsonl")):
+            p.error(bad if a.out else f"--{build} writes the JSONL file --out: give one")
+        if a.judge == "qwen-vl" and not a.judge_path:
+            p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+        import train        # its VLM loader, as the training runs load it
+        try:
+            vlm = train.make_judge(train.Args(judge=a.judge, judge_path=a.judge_path))
+        except (FileNotFoundError, ValueError, ImportError) as e:
+            p.error(str(e))
+        counts = (make_worldtasks if build == "worldtasks" else label_videos)(getattr(a, build), vlm, a.out)
+        print(", ".join(f"{k} {v}" for k, v in counts.items()))
+        return print(f"wrote {a.out}")
     if a.composition:
         if a.n is not None or a.out is not None:
             p.error("--n and --out choose the pairs drawn as videos: not with --composition")

@@ -678,6 +678,12 @@ MUTANTS = {
          "        except ValueError:\n            counts[\"unreadable\"] += 1", "a file PIL cannot read ending the labelling"),
         ("        if v.dtype != np.uint8 or v.ndim != 4 or v.shape[-1] != 3:", "        if v.ndim != 4:",
          "a .npy video of floats accepted"),
+        ('        if a.judge == "qwen-vl" and not a.judge_path:', '        if False:',
+         "world.py --judge qwen-vl without --judge_path accepted"),
+        ('    if (a.judge != "qwen-vl" or a.judge_path) and not build:', '    if False:',
+         "world.py's --judge read where nothing builds a file"),
+        ('        if a.worldtasks and a.label_videos or a.composition or a.n is not None:', '        if False:',
+         "world.py --worldtasks and --label_videos accepted together"),
     ]),
     "reward.py (+SFT data)": (SFT, [
         ("            frames = self._frames(im if im.ndim == 4 else im[None])", "            frames = self._frames(im[None])",

@@ -1191,3 +1191,21 @@ def test_label_videos_writes_the_sft_file_from_the_vlms_answers(tmp_path):
     answers = judge.generate([np.load(tmp_path / "v0.npy"), np.load(tmp_path / "v0.npy")[0]], "Which task?",
                              max_new_tokens=3)
     assert len(answers) == 2 and all(isinstance(a, str) for a in answers)
+    # from the shell: python world.py --label_videos VIDEO ... --judge ... --out FILE (--worldtasks IMAGE ... alike)
+    r = run("world.py", "--label_videos", str(tmp_path / "v0.npy"), str(tmp_path / "clip.mp4"), "--judge",
+            "qwen-vl-tiny", "--out", str(tmp_path / "new" / "sft.jsonl"))
+    assert r.returncode == 0 and "videos 2, labelled" in r.stdout and "unreadable 1" in r.stdout, r.stderr
+    assert (tmp_path / "new" / "sft.jsonl").exists()       # random weights: most likely no task in the answer
+    Image.fromarray(np.load(tmp_path / "v0.npy")[0]).save(tmp_path / "f.png")
+    r = run("world.py", "--worldtasks", str(tmp_path / "f.png"), "--judge", "qwen-vl-tiny", "--out",
+            str(tmp_path / "wt.jsonl"))
+    assert r.returncode == 0 and "images 1, kept_images" in r.stdout and (tmp_path / "wt.jsonl").exists(), r.stderr
+    for argv, msg in ((["--label_videos", "v.npy"], "--label_videos writes the JSONL file --out: give one"),
+                      (["--label_videos", "v.npy", "--out", "x.png"], "--out 'x.png' must end in .jsonl"),
+                      (["--label_videos", "v.npy", "--out", "x.jsonl"], "--judge qwen-vl needs --judge_path"),
+                      (["--label_videos", "v.npy", "--worldtasks", "i.png", "--out", "x.jsonl"], "not with each other"),
+                      (["--label_videos", "v.npy", "--out", "x.jsonl", "--judge_path", str(tmp_path)],
+                       "is not a transformers model directory: it has no config.json"),
+                      (["--judge", "qwen-vl-tiny"], "--judge and --judge_path are read with --worldtasks or")):
+        r = run("world.py", *argv)
+        assert r.returncode == 2 and msg in r.stderr, (argv, r.stderr)
