@@ -386,8 +386,8 @@ def reward_weights(args: Args) -> tuple:
 def anchor_only(args: Args) -> bool:
     """Eq. 12 with no reward weighed (every --lambda_* 0) and the anchor on (--beta_d > 0): the Executor's rounds
     train beta_d L_anchor (Eq. 11) alone, on its own states -- Fig. 4 left's on-policy variant without r_distill, what
-    `--stage distill --variant on` trains on the toy, and the way to run it on a real model, whose distill stage is
-    not wired. The judges still judge each rollout, for the log."""
+    `--stage distill --variant on` trains on the toy, and the way to run it on a real model, whose distill stage runs
+    the +SFT baseline alone. The judges still judge each rollout, for the log."""
     return (args.executor_update == "wmsd" and not args.alternate and args.beta_d > 0
             and args.lambda_task == args.lambda_cons == args.lambda_distill == args.lambda_pick == 0)
 
