@@ -1544,7 +1544,8 @@ def load_base(args: Args):
 
 
 def load_real(args: Args):
-    """A real --model (or its tiny or random stand-in), on the GPU where there is one, with its memory flags."""
+    """A real --model (or its tiny or random stand-in), on the GPU where there is one, with its memory flags. An
+    --eval_height and --eval_width its VAE cannot take are a ValueError here, before any work."""
     cuda = torch.cuda.is_available()   # a real model, or its tiny or random stand-in, runs on the GPU when there is one
     if args.model.endswith("-tiny"):
         model = REAL_MODELS[args.model[:-len("-tiny")]].tiny(world.VOCAB + ["[", "]:"], seed=args.seed)
@@ -1557,6 +1558,9 @@ def load_real(args: Args):
         model.transformer.enable_gradient_checkpointing()
     if args.offload_text:
         models.offload(model.text_encoder)
+    if args.eval_height:          # Table 3's evaluation size, tried once
+        with models.resolution(model, args.eval_height, args.eval_width):
+            pass
     return model
 
 
@@ -1666,10 +1670,8 @@ def rl_stage(args: Args) -> dict:
     state = load_state(state_path, args) if args.resume else None
     start = time.time()
     global JUDGE, BENCH, PICK
-    model = load_base(args)                  # a bad checkpoint or missing weights stop here, before anything is written
-    if args.eval_height:                     # and an evaluation size this VAE cannot take
-        with models.resolution(model, args.eval_height, args.eval_width):
-            pass
+    model = load_base(args)   # a bad checkpoint, missing weights or an --eval_height the VAE cannot take stop here,
+                              # before anything is written
     JUDGE, PICK = make_judge(args), make_pick(args)
     pairs = load_pairs(args, model)
     BENCH = load_bench(args, model, pairs if args.dataset else [])

@@ -1121,6 +1121,9 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
     r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset",
             str(tmp_path / "none.jsonl"), "--run_dir", str(tmp_path / "none"))
     assert r.returncode == 2 and "No such file or directory" in r.stderr and not (tmp_path / "none").exists()
+    r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset", str(path),
+            "--eval_height", "33", "--eval_width", "32", "--run_dir", str(tmp_path / "none"))   # a size the VAE cannot take
+    assert r.returncode == 2 and "33" in r.stderr and not (tmp_path / "none").exists(), r.stderr
     # a step: each video with its own task, --micro_batch videos a pass
     seen = []
 
