@@ -1053,7 +1053,8 @@ def main(argv=None) -> None:
                                 "print each pair's family, T and D. With --composition, draw the toy's Fig. 3 "
                                 "instead: the agents and task types of the training split and the two benches.")
     p.add_argument("--n", type=int, default=None, help="bench pairs to draw, 1..200 (default 6)")
-    p.add_argument("--out", default=None, help="the PNG to write (default world_examples.png)")
+    p.add_argument("--out", default=None, help="the PNG to write (default world_examples.png); with --worldtasks or "
+                   "--label_videos, the JSONL file")
     p.add_argument("--composition", default=None, metavar="PNG",
                    help="draw Fig. 3's prompt composition into PNG and print its counts (not with --n or --out)")
     p.add_argument("--dataset", action="append", default=None, metavar="JSONL",
