@@ -67,6 +67,12 @@ KEYS = ("task", "agent", "consistency")
 DEMO_ROW = "Base + VLM (Demonstrator, toy VLM's D)"  # the Demonstrator's row in train.py's rl_summary.json table
 
 
+def given_d(bench: str | None) -> str:
+    """Whose D the Demonstrator is given on a bench (bench: "toy", "crowded", a WorldTasks file, or None: the toy's),
+    as figures and tables name it."""
+    return "toy VLM's D" if bench in (None, "toy", "crowded") else "the bench file's D"
+
+
 REAL_MODELS = models.REAL_MODELS   # --model: the paper's two bases (train.py's too)
 CONDITIONS = ("task", "vlm", "oracle", "vague", "empty", "goal", "instruction", "oracle_instruction",
               "oracle_direction")
@@ -738,7 +744,7 @@ def read_run(run_dir: str) -> dict:
     else:
         args = summary.get("args", {})
         # a real-image bench's Demonstrator row is named for its file's D (train.py): read it as DEMO_ROW too
-        fixed = {k.replace("the bench file's D", "toy VLM's D"): v for k, v in summary.get("table", {}).items()}
+        fixed = {k.replace(given_d("file"), given_d("toy")): v for k, v in summary.get("table", {}).items()}
         prompt = args.get("executor_prompt", "task")
         bench = args.get("eval_dataset") or ("crowded" if args.get("eval_crowded") else "toy")
     return {"evals": evals, "steps": steps, "fixed": fixed, "prompt": prompt, "bench": bench if summary else None}
@@ -817,8 +823,8 @@ def compare_runs(runs: dict, path: str | None = None) -> str:
             for i, (label, rs) in enumerate(groups.items()):
                 curve_band(ax, [r["evals"] for r in rs], key, label, color=f"C{i}")
             if demo and key in demo:
-                ax.axhline(demo[key], color="k", ls="--", lw=1, label="Demonstrator (" + (
-                    "toy VLM's D)" if benches <= {"toy", "crowded"} else "the bench file's D)"))
+                ax.axhline(demo[key], color="k", ls="--", lw=1,
+                           label=f"Demonstrator ({given_d(next(iter(benches), None))})")
             ax.set_xlabel("step")
             ax.set_ylabel(f"{'crowded ' if benches == {'crowded'} else ''}bench "
                           + ("PickScore against T" if key == "pick" else key))
@@ -958,9 +964,9 @@ def main(argv=None):
         p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
     if a.pick == "pickscore" and not a.pick_path:
         p.error("--pick pickscore needs --pick_path (a local directory of PickScore; nothing is downloaded)")
-    run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path, pick=a.pick,
-                     pick_path=a.pick_path, pick_processor_path=a.pick_processor_path)
-    for name, readers, chosen in train.unread_flags(run):
+    paths = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path, pick=a.pick,
+                       pick_path=a.pick_path, pick_processor_path=a.pick_processor_path)     # the weights' flags
+    for name, readers, chosen in train.unread_flags(paths):
         p.error(f"--{name} is read with {readers} only: {chosen} would ignore it")     # a path no loader reads
     if a.offload_judge and a.judge == "toy":
         p.error("--offload_judge is for a VLM judge's weights (--judge qwen-vl / qwen-vl-tiny / qwen-vl-random)")
@@ -1022,7 +1028,7 @@ def main(argv=None):
     models.use_cpu(a.threads)
     judge = pairs = executor = pick = None
     try:
-        pick = train.make_pick(run)
+        pick = train.make_pick(paths)
         if a.real:       # the loaders train.py uses
             run = train.Args(model=a.model, model_path=a.model_path, judge=a.judge, judge_path=a.judge_path,
                              init=a.checkpoint or "", offload_text=a.offload_text, offload_judge=a.offload_judge)

@@ -928,15 +928,15 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     for step in range(1, args.steps + 1):
         t0 = time.time()
         idx = rng.choice(len(pairs), args.batch, replace=False)
-        extra, loss = {}, None
+        extra, loss_of = {}, None
         if base is not None:    # Table 1's +SFT on a real model: its labelled videos, --micro_batch at a time (each
             rows = [pairs[i] for i in idx]         # part draws its own x_0 and t: the same law as one pass)
             videos = np.stack([world.load_video(r["video"], (model.width, model.height)) for r in rows])
             m = args.micro_batch or len(rows)
             parts = [SimpleNamespace(rows=slice(i, i + m), share=len(rows[i:i + m]) / len(rows))
                      for i in range(0, len(rows), m)]
-            value, gnorm, _ = _update(step, opt, params, parts, lambda p: (video_loss(
-                model, videos[p.rows], [r["task"] for r in rows[p.rows]], args), {}), gen, "SFT")
+            loss_of = lambda p: (  # noqa: E731 -- a part's loss, as _update takes it
+                video_loss(model, videos[p.rows], [r["task"] for r in rows[p.rows]], args), {})
         elif variant == "sft":  # Sec. 4.4's +SFT baseline: plain world videos labelled with derived short tasks
             videos, labels = world.sft_batch(rng, args.batch, args.train_crowded)
             loss = video_loss(model, videos, labels, args)
@@ -964,12 +964,9 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
                 fake_loss.backward()
                 fake_opt.step()
                 extra["fake_loss"] = fake_loss.item()
-        if loss is not None:    # the toy's step on the whole batch
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            gnorm = torch.nn.utils.clip_grad_norm_(params, 1.0)  # Table 3: max grad norm 1
-            opt.step()
-            value = loss.item()
+        if loss_of is None:     # the toy's loss above, on the whole batch: one part
+            parts, loss_of = [SimpleNamespace(share=1.0)], lambda p: (loss, {})
+        value, gnorm, _ = _update(step, opt, params, parts, loss_of, gen, variant)   # Table 3: max grad norm 1
         rec = {"variant": variant, "step": step, "loss": value, "grad_norm": float(gnorm),
                "step_seconds": time.time() - t0, **extra}
         logf.write(json.dumps(rec) + "\n")
@@ -1035,8 +1032,8 @@ def plot_fig4_left(results: dict, path: str) -> None:
     for ax, key in zip(axes, ("task", "avg")):
         for v, evals in results["variants"].items():
             ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor, {v}")
-        ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1, label="Demonstrator (" + (
-            "toy VLM's D)" if results.get("bench", "toy") in ("toy", "crowded") else "the bench file's D)"))
+        ax.axhline(results["demonstrator"][key], color="k", ls="--", lw=1,
+                   label=f"Demonstrator ({bench.given_d(results.get('bench'))})")
         ax.set_xlabel("training step")
         ax.set_ylabel(f"bench {key} score")
         ax.grid(alpha=0.3)
@@ -1812,7 +1809,7 @@ def rl_stage(args: Args) -> dict:
         rows["trained Demonstrator phi (toy VLM's D)"] = {
             k: v for k, v in evaluate_executor(demo_net, args, demonstrator="trained").items() if k in keys}
     if BENCH is not None:   # the Demonstrator's D is the bench file's, written by whatever VLM made it
-        rows = {name.replace("toy VLM's D", "the bench file's D"): r for name, r in rows.items()}
+        rows = {name.replace(bench.given_d("toy"), bench.given_d("file")): r for name, r in rows.items()}
     pick = PICK is not None      # PickScore's column (Fig. 4's quality measure)
     table = [f"| model | task | agent | consistency | avg | still |{' pick |' if pick else ''} s/video |",
              "|---|---|---|---|---|---|---|" + ("---|" if pick else "")]
@@ -1841,7 +1838,7 @@ def plot_rl_curve(evals: list, demo: dict, path: str, args: Args, steps: list = 
     steps'."""
     keys = ("task", "consistency", "avg", *(("pick",) if all("pick" in e for e in evals) else ()))
     plt, fig, axes = bench.figure(len(keys) + 1, width=4)
-    d = "the bench file's D" if args.eval_dataset else "toy VLM's D"
+    d = bench.given_d(args.eval_dataset)
     for ax, key in zip(axes, keys):
         ax.plot([e["step"] for e in evals], [e[key] for e in evals], marker="o", ms=3, label=f"Executor ({args.trainer})")
         ax.axhline(demo[key], color="k", ls="--", lw=1, label=f"Demonstrator ({d})")
