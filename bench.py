@@ -227,14 +227,19 @@ def subgroup_sizes(pairs: list) -> dict:
     return out
 
 
+def fig7_shown(res: dict, part: str) -> list[str]:
+    """The subgroups of `part` ("families" or "agent_types") that Fig. 7 shows: those with more than FIG7_SUPPORT of
+    the bench's res["n"] pairs (res["sizes"], subgroup_sizes), in res[part]'s order."""
+    return [g for g in res[part] if res["sizes"][part][g] > FIG7_SUPPORT * res["n"]]
+
+
 def fig7_lines(res: dict) -> list[str]:
     """Fig. 7 as text, one line a panel: the task score per task type and the agent score per agent type, "score
     (successes/valid)", for the subgroups with more than FIG7_SUPPORT of the bench's pairs, as the paper shows them.
     The smaller subgroups follow on the same line with their sizes, so nothing is hidden."""
     lines = []
     for part, key in FIG7.items():
-        sizes = res["sizes"][part]
-        big = [g for g in res[part] if sizes[g] > FIG7_SUPPORT * res["n"]]
+        sizes, big = res["sizes"][part], fig7_shown(res, part)
         cells = ", ".join(f"{g} {s / max(v, 1):.3f} ({s}/{v})" for g, (s, v) in res[part].items() if g in big)
         small = ", ".join(f"{g} {s}/{v} ({sizes[g]} pairs)" for g, (s, v) in res[part].items() if g not in big)
         lines.append(f"Fig. 7, {key} score by {key} type (over {FIG7_SUPPORT:.0%} of the bench): {cells or 'none'}"

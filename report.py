@@ -34,8 +34,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 import models
-from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, FIG7, KEYS, curve_band, evaluate, figure, file_digest, fmt, mean_sd,
-                   output_path_error, read_run, save_figure, save_strip)
+from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, FIG7, FIG7_SUPPORT, KEYS, curve_band, evaluate, fig7_shown, figure,
+                   file_digest, fmt, mean_sd, output_path_error, read_run, save_figure, save_strip)
 
 
 # name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
@@ -182,6 +182,29 @@ def subgroup_rows(seeds: list[int], groups: dict) -> list[str]:
             for label, rs in groups.items() for s, r in zip(seeds, rs)]
 
 
+def fig7_table(seeds: list[int], groups: dict) -> list[str]:
+    """Fig. 7's table: each label's mean ± sd over seeds for the subgroups Fig. 7 shows (bench.fig7_shown: over 5% of
+    the bench's pairs, in the first evaluation), the subgroups' sizes with the rest named, then every subgroup seed by
+    seed (subgroup_rows). `groups`: label -> a final evaluation per seed."""
+    first = next(iter(groups.values()))[0]
+    shown = {part: fig7_shown(first, part) for part in FIG7}
+    head = [f"{key}: {g}" for part, key in FIG7.items() for g in shown[part]]
+    every = [f"{key}: {g}" for part, key in FIG7.items() for g in first[part]]
+    lines = ["| model | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
+    for label, rs in groups.items():
+        lines.append(f"| {label} | " + " | ".join(fmt(subgroup_score(r[part][g]) for r in rs)
+                                                  for part in FIG7 for g in shown[part]) + " |")
+    sizes = ", ".join(f"{g} {v}" for part in FIG7 for g, (_, v) in first[part].items())
+    rest = ", ".join(f"{g} ({first['sizes'][part][g]} pairs)" for part in FIG7 for g in first[part]
+                     if g not in shown[part])
+    return lines + [f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}." +
+                    (f" At most {FIG7_SUPPORT:.0%} of the bench's pairs, so not in the figure or the table above, as in "
+                     f"the paper: {rest}." if rest else ""), "",
+                    "Per seed, each score with its successes / valid judgments:", "",
+                    "| model | seed | " + " | ".join(every) + " |", "|---|---|" + "---|" * len(every),
+                    *subgroup_rows(seeds, groups)]
+
+
 def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "") -> str:
     """Every table and figure of the report (README "The reproduction report") from finished runs: evaluates the final checkpoints (bench noise seed =
     the run's seed) and reads the logged curves. Writes out/report.md and out/*.png; returns the markdown."""
@@ -280,10 +303,9 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     groups = {"Base (T)": rows["Base (T)"], "Demonstrator": rows["Base + VLM (the Demonstrator: the toy VLM's D)"],
               "WMSD (T)": rows["WMSD (T)"]}
     first = rows["Base (T)"][0]
-    head = [f"{key}: {g}" for part, key in FIG7.items() for g in first[part]]
     plt, fig, axes = figure(2)
     for ax, (part, key) in zip(axes, FIG7.items()):
-        names = list(first[part])
+        names = fig7_shown(first, part)
         for i, (label, rs) in enumerate(groups.items()):
             ms = [mean_sd(subgroup_score(r[part][g]) for r in rs) for g in names]
             ax.bar(np.arange(len(names)) + 0.27 * (i - 1), [m for m, _ in ms], 0.27, yerr=[sd for _, sd in ms],
@@ -293,15 +315,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
     axes[0].legend(fontsize=7)
     save_figure(plt, fig, os.path.join(out, "fig7.png"))
     lines += ["", "## Fig. 7: task score per task family, agent score per agent type", "", "![](fig7.png)", "",
-              "| model | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
-    for label, rs in groups.items():
-        cells = [fmt(subgroup_score(r[part][g]) for r in rs) for part in FIG7 for g in first[part]]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    sizes = ", ".join(f"{g} {v}" for part in FIG7 for g, (_, v) in first[part].items())
-    lines += [f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}.", "",
-              "Per seed, each score with its successes / valid judgments:", "",
-              "| model | seed | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head),
-              *subgroup_rows(seeds, groups)]
+              *fig7_table(seeds, groups)]
     # Fig. 8: with and without the consistency reward
     a, b = (finals[(name, seeds[0])][1][:6] for name in ("wmsd", "no_cons"))
     sep = np.full((*a.shape[:3], 1, 3), 255, np.uint8)         # a white column between the two videos of a row

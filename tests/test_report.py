@@ -123,6 +123,24 @@ def test_fig7_shows_the_subgroups_over_5_percent_of_the_bench_and_names_the_rest
     assert rest.endswith("not shown in the paper's figure: vehicle control 1/2 (2 pairs)")      # 2/40 = 5%: not over
     assert agent.endswith("human character 0.000 (0/37), vehicle 0.667 (2/3)") and "; " not in agent   # 3/40 = 7.5%
 
+def test_reports_fig7_table_shows_the_subgroups_over_5_percent_and_keeps_the_rest_per_seed():
+    """report.fig7_table applies bench.fig7_shown's rule to the report's table, as bench.py's lines do: a subgroup at 5%
+    of the bench's pairs or under has no column of means, is named with its size, and keeps its per-seed cells."""
+    res = lambda nav, per: {"n": 40, "families": {"navigation": [nav, 38], "perception": [per, 2]},   # noqa: E731
+                            "agent_types": {"sprite": [5, 40]},
+                            "sizes": {"families": {"navigation": 38, "perception": 2}, "agent_types": {"sprite": 40}}}
+    rows = report.fig7_table([0, 1], {"Base (T)": [res(19, 1), res(38, 2)]})
+    assert rows[:3] == ["| model | task: navigation | agent: sprite |", "|---|---|---|",
+                        "| Base (T) | 0.750 ± 0.354 | 0.125 ± 0.000 |"]
+    assert rows[3].endswith("sprite 40. At most 5% of the bench's pairs, so not in the figure or the table above, "
+                            "as in the paper: perception (2 pairs).")
+    assert rows[-4] == "| model | seed | task: navigation | task: perception | agent: sprite |"
+    assert rows[-2:] == ["| Base (T) | 0 | 0.500 (19/38) | 0.500 (1/2) | 0.125 (5/40) |",
+                         "| Base (T) | 1 | 1.000 (38/38) | 1.000 (2/2) | 0.125 (5/40) |"]
+    assert "At most" not in report.fig7_table([0], {"B": [res(1, 1) | {"n": 39}]})[3]    # 2/39 > 5%: shown
+    assert report.fig7_table([0], {"B": [res(1, 1) | {"n": 39}]})[0].count("perception") == 1
+
+
 def test_per_seed_rows_give_each_seed_its_own_values():
     """report.per_seed_rows: a final evaluation's scores, or a curve's at its end and then its peaks, in the order of
     the seeds they belong to."""
