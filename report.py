@@ -198,8 +198,8 @@ def fig7_table(seeds: list[int], groups: dict) -> list[str]:
     rest = ", ".join(f"{g} ({first['sizes'][part][g]} pairs)" for part in FIG7 for g in first[part]
                      if g not in shown[part])
     return lines + [f"\nSubgroup sizes (valid judgments, seed {seeds[0]}): {sizes}." +
-                    (f" At most {FIG7_SUPPORT:.0%} of the bench's pairs, so not in the figure or the table above, as in "
-                     f"the paper: {rest}." if rest else ""), "",
+                    (f" At most {FIG7_SUPPORT:.0%} of the bench's pairs, so not in the figure or the table above, "
+                     f"as in the paper: {rest}." if rest else ""), "",
                     "Per seed, each score with its successes / valid judgments:", "",
                     "| model | seed | " + " | ".join(every) + " |", "|---|---|" + "---|" * len(every),
                     *subgroup_rows(seeds, groups)]
