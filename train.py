@@ -152,8 +152,9 @@ class Args:
     sft_dataset: str = ""
     """--variant sft on a real model (--model ltx2 / hunyuan15, -tiny, -random), Table 1's +SFT row: a JSONL file of
     labelled videos, one {"video": FILE, "task": T} a line. FILE (relative: to the JSONL file's folder) is a .npy
-    array uint8 (F, H, W, 3) of the model's F frames, or an animated GIF, PNG or WebP; its frames are resized to the
-    model's size. The toy's SFT videos are the world's (world.sft_batch)"""
+    array uint8 (F, H, W, 3) of the model's F frames, an mp4, mov, mkv, webm or avi file (through PyAV, in
+    requirements-real.txt), or an animated GIF, PNG or WebP; its frames are resized to the model's size. The toy's
+    SFT videos are the world's (world.sft_batch)"""
     lr: float = 1e-3
     """Adam learning rate of the LoRA weights (Table 3 uses 2e-4 on LTX-2; the toy's LoRA is tiny)"""
     lora_rank: int = 8
@@ -1625,8 +1626,8 @@ def sft_rows(path: str, model, need: int) -> list[dict]:
                 if (n := world.video_length(r["video"])) != model.frames:
                     raise ValueError(f"{r['video']} has {n} frames; the model makes {model.frames}")
                 model.check_prompts([r["task"]])
-            except (ValueError, OSError) as e:        # a JSON error is a ValueError; a missing or unread file, OSError
-                raise ValueError(f"{path} line {i}: {e}") from None
+            except (ValueError, OSError, ImportError) as e:   # a JSON error is a ValueError; a missing or unread file,
+                raise ValueError(f"{path} line {i}: {e}") from None   # OSError; an mp4 without PyAV, ImportError
             rows.append(r)
     if len(rows) < need:
         raise ValueError(f"--sft_dataset {path!r} has {len(rows)} videos, fewer than --batch {need}")

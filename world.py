@@ -976,16 +976,35 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
     return counts
 
 
+VIDEO_CONTAINERS = (".mp4", ".m4v", ".mov", ".mkv", ".webm", ".avi")   # decoded through PyAV (requirements-real.txt)
+
+
+def _open_container(path: str):
+    """An mp4 or other VIDEO_CONTAINERS file opened through PyAV, the optional package that decodes them: an
+    ImportError naming the install if it is missing, a ValueError for a file it cannot read (PyAV's
+    InvalidDataError is one), a FileNotFoundError for a missing one."""
+    import models       # models imports this module: here, not at the top
+    models._require("av")
+    import av
+    return av.open(path)
+
+
 def video_length(path: str) -> int:
-    """How many frames a video file holds, from its header: a .npy array uint8 (F, H, W, 3), or an image PIL reads
-    (an animated GIF, PNG or WebP; a still image is one frame). A ValueError for a .npy of another kind, an OSError
-    for a file PIL cannot read (an mp4 among them: convert it to .npy or an animated image)."""
+    """How many frames a video file holds: a .npy array uint8 (F, H, W, 3) or an image PIL reads (an animated GIF,
+    PNG or WebP; a still image is one frame), from the header; a video container (VIDEO_CONTAINERS: mp4, mov, webm,
+    ...) through PyAV, from its stream's header where it records the count (mp4, mov), else by decoding (webm). A
+    ValueError for a .npy of another kind, an OSError or ValueError for a file that cannot be read."""
     from PIL import Image
     if path.endswith(".npy"):
         v = np.load(path, mmap_mode="r")          # no pickles, nothing read but the header
         if v.dtype != np.uint8 or v.ndim != 4 or v.shape[-1] != 3:
             raise ValueError(f"{path}: a .npy video is uint8 (F, H, W, 3), not {v.dtype} {v.shape}")
         return len(v)
+    if path.lower().endswith(VIDEO_CONTAINERS):
+        with _open_container(path) as c:
+            if not c.streams.video:
+                raise ValueError(f"{path}: no video stream")
+            return c.streams.video[0].frames or sum(1 for _ in c.decode(video=0))
     with Image.open(path) as img:
         return getattr(img, "n_frames", 1)
 
@@ -997,6 +1016,9 @@ def load_video(path: str, size: tuple | None = None) -> np.ndarray:
     video_length(path)
     if path.endswith(".npy"):
         frames = [Image.fromarray(f) for f in np.load(path)]
+    elif path.lower().endswith(VIDEO_CONTAINERS):
+        with _open_container(path) as c:
+            frames = [f.to_image() for f in c.decode(video=0)]      # RGB
     else:
         with Image.open(path) as img:
             frames = [f.convert("RGB") for f in ImageSequence.Iterator(img)]
@@ -1064,8 +1086,9 @@ def main(argv=None) -> None:
                    help="write the WorldTasks JSONL file --out from these images (make_worldtasks: App. A.6's "
                         "filters, the VLM's task-solution pairs, the taxonomy)")
     p.add_argument("--label_videos", nargs="+", default=None, metavar="VIDEO",
-                   help="write the +SFT file --out that train.py --sft_dataset reads: these videos (.npy, GIF, PNG, "
-                        "WebP), each labelled by the VLM with the task it shows (label_videos)")
+                   help="write the +SFT file --out that train.py --sft_dataset reads: these videos (.npy; mp4, mov, "
+                        "mkv, webm, avi through PyAV; animated GIF, PNG, WebP), each labelled by the VLM with the "
+                        "task it shows (label_videos)")
     p.add_argument("--judge", default="qwen-vl", choices=("qwen-vl", "qwen-vl-tiny"),
                    help="with --worldtasks or --label_videos: the VLM (qwen-vl: --judge_path; qwen-vl-tiny: random "
                         "weights, for checks)")
@@ -1083,8 +1106,11 @@ def main(argv=None) -> None:
             p.error(bad if a.out else f"--{build} writes the JSONL file --out: give one")
         if a.judge == "qwen-vl" and not a.judge_path:
             p.error("--judge qwen-vl needs --judge_path (a local directory of the VLM; nothing is downloaded)")
+        import models
         import train        # its VLM loader, as the training runs load it
         try:
+            if any(v.lower().endswith(VIDEO_CONTAINERS) for v in a.label_videos or ()):
+                models._require("av")       # before the VLM loads, not after it has labelled the first videos
             vlm = train.make_judge(train.Args(judge=a.judge, judge_path=a.judge_path))
         except (FileNotFoundError, ValueError, ImportError) as e:
             p.error(str(e))

@@ -47,7 +47,8 @@ PICKSCORE = "tests/test_real_backends.py::test_pickscore_scores_a_video_by_its_f
 TAXONOMY = "tests/test_real_backends.py::test_the_prompt_only_taxonomy_labels_rows_and_groups_fig_3_and_fig_7"
 SFT = [f"tests/test_real_backends.py::test_{name}" for name in (
     "the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_videos",
-    "a_real_model_encodes_a_video_into_the_state_it_decodes", "label_videos_writes_the_sft_file_from_the_vlms_answers")]
+    "a_real_model_encodes_a_video_into_the_state_it_decodes", "label_videos_writes_the_sft_file_from_the_vlms_answers",
+    "an_mp4_or_webm_video_is_read_through_pyav_and_without_it_is_a_clear_error")]
 FIG7_SUPPORT = "tests/test_report.py::test_fig7_shows_the_subgroups_over_5_percent_of_the_bench_and_names_the_rest"
 
 BAD_INPUT = ["tests/test_train.py::test_bad_input_one_line_exit_2_nothing_written",
@@ -691,6 +692,17 @@ MUTANTS = {
          "        except ValueError:\n            counts[\"unreadable\"] += 1", "a file PIL cannot read ending the labelling"),
         ("        if v.dtype != np.uint8 or v.ndim != 4 or v.shape[-1] != 3:", "        if v.ndim != 4:",
          "a .npy video of floats accepted"),
+        ("    if path.lower().endswith(VIDEO_CONTAINERS):", "    if False:", "an mp4's frames counted by PIL, not PyAV"),
+        ("    elif path.lower().endswith(VIDEO_CONTAINERS):", "    elif False:", "an mp4 decoded by PIL, not PyAV"),
+        ("            return c.streams.video[0].frames or sum(1 for _ in c.decode(video=0))",
+         "            return c.streams.video[0].frames", "a webm's frame count taken from a header that has none"),
+        ("            frames = [f.to_image() for f in c.decode(video=0)]      # RGB",
+         "            frames = [f.to_image() for f in c.decode(video=0)][1:]      # RGB", "an mp4's first frame dropped"),
+        ('            if not c.streams.video:\n                raise ValueError(f"{path}: no video stream")', '',
+         "a file with no video stream ending the labelling"),
+        ('    models._require("av")\n    import av', '    import av', "PyAV's absence not named"),
+        ('                models._require("av")       # before the VLM loads', '                pass       # before the VLM loads',
+         "world.py --label_videos finding PyAV missing only after loading the VLM"),
         ('        if a.judge == "qwen-vl" and not a.judge_path:', '        if False:',
          "world.py --judge qwen-vl without --judge_path accepted"),
         ('    if (a.judge != "qwen-vl" or a.judge_path) and not build:', '    if False:',
@@ -1012,8 +1024,12 @@ MUTANTS = {
         ('        except (ValueError, OSError) as e:\n            raise ValueError(f"{path} line {r[\'line\']}: {e}")',
          '        except ValueError as e:\n            raise ValueError(f"{path} line {r[\'line\']}: {e}")',
          "a dataset row's unreadable image ending the run in a traceback"),
-        ('            except (ValueError, OSError) as e:        # a JSON error',
-         '            except ValueError as e:        # a JSON error', "an SFT row's missing video ending in a traceback"),
+        ('            except (ValueError, OSError, ImportError) as e:   # a JSON error',
+         '            except (ValueError, ImportError) as e:   # a JSON error',
+         "an SFT row's missing video ending in a traceback"),
+        ('            except (ValueError, OSError, ImportError) as e:   # a JSON error',
+         '            except (ValueError, OSError) as e:   # a JSON error',
+         "an SFT row's mp4 without PyAV ending in a traceback"),
         ("        model.transformer.enable_gradient_checkpointing()\n", "        pass\n",
          "--grad_checkpoint not arriving"),
         ("        models.offload(model.text_encoder)\n", "        pass\n", "--offload_text not arriving"),

@@ -1,6 +1,7 @@
 """The LTX-2 and HunyuanVideo-1.5 backends (diffusers + peft) on tiny random-weight models of the real classes: the
 interface, the time convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA
-files, and one WMSD step through train.py. Skipped where the optional packages are absent (CI installs them)."""
+files, and one WMSD step through train.py. Skipped where the optional packages of requirements-real.txt are absent
+(CI installs them)."""
 import inspect
 import json
 import re
@@ -13,6 +14,7 @@ from PIL import Image
 
 pytest.importorskip("diffusers")
 pytest.importorskip("peft")
+pytest.importorskip("av")      # PyAV: the +SFT videos in mp4 and other containers
 
 import distill  # noqa: E402
 import models  # noqa: E402
@@ -1108,7 +1110,7 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
                      (json.dumps({"video": "none.npy", "task": "x"}), "line 2: [Errno 2] No such file"),
                      (json.dumps({"video": "short.npy", "task": "x"}), f"has {m.frames - 1} frames; the model makes"),
                      (json.dumps({"video": "floats.npy", "task": "x"}), "a .npy video is uint8 (F, H, W, 3), not float32"),
-                     (json.dumps({"video": "clip.mp4", "task": "x"}), "line 2: cannot identify image file")):
+                     (json.dumps({"video": "clip.mp4", "task": "x"}), "line 2: [Errno 1094995529] Invalid data found")):
         (tmp_path / "bad.jsonl").write_text(good + "\n" + bad + "\n")
         with pytest.raises(ValueError) as e:
             train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
@@ -1159,6 +1161,62 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
     assert "3 labelled videos from" in r.stdout and (d / "rollouts_sft.gif").exists()
     r = run("bench.py", "--model", "ltx2-tiny", "--lora", str(d / "executor_sft.pt"), "--n", "2", "--steps", "2")
     assert r.returncode == 0 and "2 steps of --model ltx2-tiny" in r.stdout, r.stderr
+
+
+def _write_video(path, frames, codec="libx264"):
+    """uint8 (F, H, W, 3) -> a video file through PyAV: H.264 lossless in 4:4:4 (RGB comes back within a level or
+    so), or VP9 in 4:2:0 for a .webm, whose header does not hold its frame count."""
+    import av
+    with av.open(str(path), "w") as c:
+        s = c.add_stream(codec, rate=8, options={"crf": "0"} if codec == "libx264" else {})
+        s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv444p" if codec == "libx264" else "yuv420p"
+        for f in frames:
+            c.mux(s.encode(av.VideoFrame.from_ndarray(f, format="rgb24")))
+        c.mux(s.encode())
+
+
+def test_an_mp4_or_webm_video_is_read_through_pyav_and_without_it_is_a_clear_error(tmp_path, monkeypatch, capsys):
+    """world.load_video and video_length read video containers (mp4, webm, ...) through PyAV, an optional package of
+    requirements-real.txt: the frames that were written, their count from the header or, where the header has none
+    (webm), by decoding. A file PyAV cannot read is a ValueError, counted as unreadable by label_videos. Without PyAV,
+    --sft_dataset names the row and the install, and world.py --label_videos says so before loading the VLM."""
+    y, x = np.mgrid[:32, :48]
+    v = np.stack([np.stack([4 * x + 8 * i, 6 * y, np.full_like(x, 40 * i)], -1) for i in range(5)]).astype(np.uint8)
+    v[2, 10:20, 12:24] = (250, 20, 20)
+    _write_video(tmp_path / "v.mp4", v)
+    _write_video(tmp_path / "v.webm", v, "libvpx-vp9")
+    import av
+    with av.open(str(tmp_path / "v.webm")) as c:
+        assert c.streams.video[0].frames == 0                  # so video_length counts by decoding
+    assert world.video_length(str(tmp_path / "v.mp4")) == world.video_length(str(tmp_path / "v.webm")) == 5
+    got = world.load_video(str(tmp_path / "v.mp4"))
+    assert got.dtype == np.uint8 and got.shape == v.shape and np.abs(got.astype(int) - v).max() <= 2
+    webm = world.load_video(str(tmp_path / "v.webm"), size=(24, 16))
+    assert webm.shape == (5, 16, 24, 3) and np.abs(webm.astype(int) - v[:, 1::2, 1::2]).mean() < 8
+    (tmp_path / "bad.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")
+    with pytest.raises(ValueError, match="Invalid data"):
+        world.video_length(str(tmp_path / "bad.mp4"))
+    with av.open(str(tmp_path / "sound.mp4"), "w") as c:                  # sound alone: no frame to count
+        s = c.add_stream("aac", rate=8000)
+        f = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp", layout="mono")
+        f.sample_rate = 8000
+        c.mux(s.encode(f))
+        c.mux(s.encode())
+    with pytest.raises(ValueError, match="sound.mp4: no video stream"):
+        world.video_length(str(tmp_path / "sound.mp4"))
+    m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], seed=0)                      # 5 frames a video
+    (tmp_path / "sft.jsonl").write_text(json.dumps({"video": "v.mp4", "task": "[red square]: go to the left edge"}))
+    assert [r["video"] for r in train.sft_rows(str(tmp_path / "sft.jsonl"), m, 1)] == [str(tmp_path / "v.mp4")]
+    import importlib.util
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "av" else find_spec(name, *a))
+    with pytest.raises(ValueError, match="sft.jsonl line 1: the real-model path needs av: pip install"):
+        train.sft_rows(str(tmp_path / "sft.jsonl"), m, 1)
+    with pytest.raises(SystemExit) as e:
+        world.main(["--label_videos", str(tmp_path / "v.mp4"), "--judge", "qwen-vl-tiny", "--out",
+                    str(tmp_path / "x.jsonl")])
+    assert e.value.code == 2 and "needs av: pip install" in capsys.readouterr().err
+    assert not (tmp_path / "x.jsonl").exists()
 
 
 def test_label_videos_writes_the_sft_file_from_the_vlms_answers(tmp_path):
