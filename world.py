@@ -1011,14 +1011,17 @@ def video_length(path: str) -> int:
 
 def load_video(path: str, size: tuple | None = None) -> np.ndarray:
     """A video file (video_length's kinds, checked as it checks them) -> uint8 (F, H, W, 3), each frame bilinear to
-    size = (width, height) if given."""
+    size = (width, height) if given. A container whose frames decoded differ in number from its header's count (the
+    count train.sft_rows checked before training) is a ValueError."""
     from PIL import Image, ImageSequence
-    video_length(path)
+    n = video_length(path)
     if path.endswith(".npy"):
         frames = [Image.fromarray(f) for f in np.load(path)]
     elif path.lower().endswith(VIDEO_CONTAINERS):
         with _open_container(path) as c:
             frames = [f.to_image() for f in c.decode(video=0)]      # RGB
+        if len(frames) != n:
+            raise ValueError(f"{path}: {len(frames)} frames decoded where its header counts {n}")
     else:
         with Image.open(path) as img:
             frames = [f.convert("RGB") for f in ImageSequence.Iterator(img)]

@@ -698,6 +698,7 @@ MUTANTS = {
          "            return c.streams.video[0].frames", "a webm's frame count taken from a header that has none"),
         ("            frames = [f.to_image() for f in c.decode(video=0)]      # RGB",
          "            frames = [f.to_image() for f in c.decode(video=0)][1:]      # RGB", "an mp4's first frame dropped"),
+        ("        if len(frames) != n:", "        if False:", "a container's header miscounting its frames not caught"),
         ('            if not c.streams.video:\n                raise ValueError(f"{path}: no video stream")', '',
          "a file with no video stream ending the labelling"),
         ('    models._require("av")\n    import av', '    import av', "PyAV's absence not named"),

@@ -1193,6 +1193,10 @@ def test_an_mp4_or_webm_video_is_read_through_pyav_and_without_it_is_a_clear_err
     assert got.dtype == np.uint8 and got.shape == v.shape and np.abs(got.astype(int) - v).max() <= 2
     webm = world.load_video(str(tmp_path / "v.webm"), size=(24, 16))
     assert webm.shape == (5, 16, 24, 3) and np.abs(webm.astype(int) - v[:, 1::2, 1::2]).mean() < 8
+    with monkeypatch.context() as mp:             # a header that miscounts: an error, not a short video mid-run
+        mp.setattr(world, "video_length", lambda path: 6)
+        with pytest.raises(ValueError, match="v.mp4: 5 frames decoded where its header counts 6"):
+            world.load_video(str(tmp_path / "v.mp4"))
     (tmp_path / "bad.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")
     with pytest.raises(ValueError, match="Invalid data"):
         world.video_length(str(tmp_path / "bad.mp4"))

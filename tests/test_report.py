@@ -123,6 +123,7 @@ def test_fig7_shows_the_subgroups_over_5_percent_of_the_bench_and_names_the_rest
     assert rest.endswith("not shown in the paper's figure: vehicle control 1/2 (2 pairs)")      # 2/40 = 5%: not over
     assert agent.endswith("human character 0.000 (0/37), vehicle 0.667 (2/3)") and "; " not in agent   # 3/40 = 7.5%
 
+
 def test_reports_fig7_table_shows_the_subgroups_over_5_percent_and_keeps_the_rest_per_seed():
     """report.fig7_table applies bench.fig7_shown's rule to the report's table, as bench.py's lines do: a subgroup at 5%
     of the bench's pairs or under has no column of means, is named with its size, and keeps its per-seed cells."""
