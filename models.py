@@ -1001,7 +1001,9 @@ class LTX2Video(nn.Module):
              dtype=torch.float32):
         """A random-weight LTX-2 of the real classes, small enough for CPU tests (configs after diffusers' own
         tests; a word-level tokenizer built in-process over `words`, since nothing can be downloaded). `dtype`:
-        the components' dtype (bfloat16 is how from_pretrained loads the real one)."""
+        the components' dtype (bfloat16 is how from_pretrained loads the real one). Its VAE halves time both ways,
+        so it makes videos of `frames` frames, as LTX-2's (8x) makes 121; with those tests' encoder, which halves
+        space only, it made 9 of 5 (found at stop 118)."""
         _require("diffusers", "transformers", "tokenizers")
         from diffusers import AutoencoderKLLTX2Video, LTX2VideoTransformer3DModel
         from diffusers.pipelines.ltx2 import LTX2TextConnectors
@@ -1026,7 +1028,7 @@ class LTX2Video(nn.Module):
         vae = AutoencoderKLLTX2Video(
             in_channels=3, out_channels=3, latent_channels=4, block_out_channels=(8,), decoder_block_out_channels=(8,),
             layers_per_block=(1,), decoder_layers_per_block=(1, 1), spatio_temporal_scaling=(True,),
-            decoder_spatio_temporal_scaling=(True,), decoder_inject_noise=(False, False), downsample_type=("spatial",),
+            decoder_spatio_temporal_scaling=(True,), decoder_inject_noise=(False, False), downsample_type=("spatiotemporal",),
             upsample_residual=(False,), upsample_factor=(1,), timestep_conditioning=False, patch_size=1,
             patch_size_t=1, encoder_causal=True, decoder_causal=False)
         return cls(transformer.to(dtype), vae.to(dtype), text.to(dtype), tokenizer, connectors.to(dtype), frames,
