@@ -249,12 +249,14 @@ def fig7_lines(res: dict) -> list[str]:
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
              steps: int = 10, judge=None, batch: int = 200, pairs: list | None = None,
-             guidance: float = 1.0, pick=None) -> tuple[dict, np.ndarray, list]:
+             guidance: float = 1.0, pick=None, verdicts: bool = False) -> tuple[dict, np.ndarray, list]:
     """Generate and judge n bench videos (by reward.py's toy judges, or a reward.VLMJudge with the bench prompts of
     Figs. 15-17), `batch` videos per sampling pass (the same videos for any batch), with classifier-free guidance
     w = `guidance` (1: none; flow.guided_field). The bench is the toy one, or `pairs` (a real-image bench,
     train.load_bench). With `pick` (a reward.PickScore) the result also holds "pick", the videos' mean PickScore
-    against T, Fig. 4's quality measure. Returns (result dict, videos uint8 (n, F, H, W, 3), pairs)."""
+    against T, Fig. 4's quality measure. With `verdicts` it holds "verdicts" too, each video's three judgments
+    ({key: [True, False or None (no judgment)] for key in KEYS}; save_videos). Returns (result dict, videos uint8
+    (n, F, H, W, 3), pairs)."""
     pairs = (world.bench_pairs(error_rate) if pairs is None else pairs)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     t0 = time.time()
@@ -275,7 +277,37 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
                faults=consistency_faults(judgments), still=still_videos(videos) / max(len(pairs), 1))
     if pick is not None:
         res["pick"] = float(np.mean(pick(videos, [p.task.text for p in pairs])))
+    if verdicts:
+        res["verdicts"] = {k: [j[k].yes for j in judgments] for k in KEYS}
     return res, videos, pairs
+
+
+VIDEO_INDEX = "videos.jsonl"    # save_videos' index of a folder of bench videos
+
+
+def save_videos(out_dir: str, videos: np.ndarray, pairs: list, prompts: list[str], verdicts: dict,
+                fps: float | None = None) -> str:
+    """Every evaluated video as a file to watch (bench.py --videos), and beside them out_dir/VIDEO_INDEX, a row a
+    video: its file, the bench pair's T ("task"), the prompt the model was given and the bench's three verdicts
+    ("verdicts": true, false, or null: no judgment; evaluate's). With `fps` (a real model's frame rate) each video is an mp4 at its
+    own size (world.write_video: through PyAV, in requirements-real.txt); without, a GIF enlarged to 128 px rows,
+    400 ms a frame, as the toy's rollout GIFs. Returns the index's path."""
+    from PIL import Image
+    os.makedirs(out_dir, exist_ok=True)
+    rows = []
+    for i, (v, p, prompt) in enumerate(zip(videos, pairs, prompts)):
+        name = f"{i:03d}.mp4" if fps else f"{i:03d}.gif"
+        if fps:
+            world.write_video(os.path.join(out_dir, name), v, fps)
+        else:
+            s = max(1, 8 * world.H // v.shape[1])
+            imgs = [Image.fromarray(f).resize((f.shape[1] * s, f.shape[0] * s), Image.NEAREST) for f in v]
+            imgs[0].save(os.path.join(out_dir, name), save_all=True, append_images=imgs[1:], duration=400, loop=0)
+        rows.append({"video": name, "task": p.task.text, "prompt": prompt,
+                     "verdicts": {k: verdicts[k][i] for k in KEYS}})
+    index = os.path.join(out_dir, VIDEO_INDEX)
+    world.write_jsonl(index, rows)
+    return index
 
 
 def switched_field(model, c_a: dict, c_b: dict, t_switch: float):
@@ -908,6 +940,9 @@ def main(argv=None):
                         "training samples with; other W: two forwards a step; flow.guided_field)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--png", default=None, help="write the first 8 videos as a PNG strip here")
+    p.add_argument("--videos", default=None, metavar="DIR",
+                   help="write every evaluated video into DIR, with videos.jsonl: each video's T, prompt and verdicts "
+                        "(a real model's as mp4s at its size and frame rate, through PyAV; the toy's as GIFs)")
     p.add_argument("--gallery", default=None, metavar="PNG",
                    help="draw the first --n bench pairs: the simulator's correct video, the Demonstrator (given the toy "
                         "VLM's D), the base [and --executor] given --condition, with the judges' verdicts")
@@ -947,6 +982,10 @@ def main(argv=None):
     for flag in ("png", "gallery"):
         if getattr(a, flag) and (bad := output_path_error(getattr(a, flag), f"--{flag}", suffix=".png")):
             p.error(bad)
+    if a.videos and (bad := output_path_error(a.videos, "--videos", directory=True)):
+        p.error(bad)
+    if a.videos and os.path.exists(os.path.join(a.videos, VIDEO_INDEX)):
+        p.error(f"--videos {a.videos!r} already holds {VIDEO_INDEX}, an earlier bench's videos: give another folder")
     if a.executor and not a.gallery:
         p.error("--executor is --gallery's Executor row; to evaluate a toy checkpoint give it as --checkpoint")
     if a.n is None:
@@ -1142,8 +1181,9 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
         if a.json:
             print(json.dumps(res))
         return
-    res, videos, _ = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
-                              a.guidance, pick)
+    res, videos, pairs = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
+                                  a.guidance, pick, verdicts=bool(a.videos))
+    verdicts = res.pop("verdicts", None)
     res["bench"] = a.dataset or ("crowded" if a.crowded else "toy")
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
@@ -1157,6 +1197,10 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
     if a.png:
         save_strip(videos, a.png)
         print(f"wrote {a.png}")
+    if a.videos:          # a real model's frame rate (LTX-2's is its own; HunyuanVideo-1.5's pipeline writes 24)
+        fps = getattr(model, "fps", 24.0) if a.model != "toy" else None
+        index = save_videos(a.videos, videos, pairs, prompts_for(pairs, a.condition), verdicts, fps)
+        print(f"wrote {len(videos)} videos and {index}")
     if a.json:
         print(json.dumps(res))
 

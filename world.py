@@ -979,14 +979,28 @@ def make_worldtasks(image_paths: list[str], vlm, out_path: str, per_image: int =
 VIDEO_CONTAINERS = (".mp4", ".m4v", ".mov", ".mkv", ".webm", ".avi")   # decoded through PyAV (requirements-real.txt)
 
 
-def _open_container(path: str):
+def _open_container(path: str, mode: str = "r"):
     """An mp4 or other VIDEO_CONTAINERS file opened through PyAV, the optional package that decodes them: an
     ImportError naming the install if it is missing, a ValueError for a file it cannot read (PyAV's
-    InvalidDataError is one), a FileNotFoundError for a missing one."""
+    InvalidDataError is one), a FileNotFoundError for a missing one. mode "w": opened to be written."""
     import models       # models imports this module: here, not at the top
     models._require("av")
     import av
-    return av.open(path)
+    return av.open(path, mode)
+
+
+def write_video(path: str, frames: np.ndarray, fps: float) -> None:
+    """uint8 (F, H, W, 3) -> an mp4 to watch at `fps` frames a second: H.264 in 4:2:0 at crf 18, what players take,
+    through PyAV. 4:2:0 needs an even height and width: an odd one loses its last row or column."""
+    import av
+    from fractions import Fraction
+    frames = frames[:, :frames.shape[1] // 2 * 2, :frames.shape[2] // 2 * 2]
+    with _open_container(path, "w") as c:
+        s = c.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001), options={"crf": "18"})
+        s.height, s.width, s.pix_fmt = frames.shape[1], frames.shape[2], "yuv420p"
+        for f in frames:
+            c.mux(s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="rgb24")))
+        c.mux(s.encode())        # what the encoder still holds
 
 
 def video_length(path: str) -> int:

@@ -647,6 +647,32 @@ MUTANTS = {
          '                                                  for part in FIG7 for g in first[part]) + " |")',
          "the report's Fig. 7 means under headings they are not"),
     ]),
+    "bench.py (--videos)": (["tests/test_scripts.py::test_bench_writes_every_video_with_its_task_prompt_and_verdicts",
+                             "tests/test_real_backends.py::test_a_real_models_bench_videos_are_written_as_mp4s_at_its_"
+                             "frame_rate"], [
+        ('        res["verdicts"] = {k: [j[k].yes for j in judgments] for k in KEYS}',
+         '        res["verdicts"] = {k: [j["task"].yes for j in judgments] for k in KEYS}',
+         "--videos giving every verdict the task judge's"),
+        ('                     "verdicts": {k: verdicts[k][i] for k in KEYS}})',
+         '                     "verdicts": {k: verdicts[k][0] for k in KEYS}})', "--videos giving every video the first's verdicts"),
+        ('        rows.append({"video": name, "task": p.task.text, "prompt": prompt,',
+         '        rows.append({"video": name, "task": p.task.text, "prompt": p.task.text,',
+         "--videos naming T as the prompt whatever the model was given"),
+        ("            s = max(1, 8 * world.H // v.shape[1])", "            s = 1", "--videos' toy GIFs at 16 px"),
+        ('    if a.videos and os.path.exists(os.path.join(a.videos, VIDEO_INDEX)):', '    if False:',
+         "--videos overwriting an earlier bench's videos"),
+        ('    if a.videos and (bad := output_path_error(a.videos, "--videos", directory=True)):', '    if False:',
+         "--videos naming a file found only after the bench"),
+    ]),
+    "world.py (--videos)": (["tests/test_real_backends.py::test_a_real_models_bench_videos_are_written_as_mp4s_at_its_"
+                             "frame_rate"], [
+        ("    frames = frames[:, :frames.shape[1] // 2 * 2, :frames.shape[2] // 2 * 2]", "",
+         "an mp4 of odd height written as it is, which 4:2:0 cannot hold"),
+        ('        s = c.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001), options={"crf": "18"})',
+         '        s = c.add_stream("libx264", rate=25, options={"crf": "18"})', "--videos' mp4s at 25 fps, not the model's"),
+        ('        c.mux(s.encode())        # what the encoder still holds', '',
+         "an mp4 written without the frames the encoder still holds"),
+    ]),
     "models.py (+SFT on a real model)": (SFT, [
         ("        return self._normalise(self.vae.encode(img).latent_dist.mode().float())[:, :, 1:]",
          "        return self._normalise(self.vae.encode(img).latent_dist.mode().float())[:, :, :-1]",
@@ -717,8 +743,8 @@ MUTANTS = {
     ]),
     "bench.py (--pick)": ([PICKSCORE, "tests/test_scripts.py::test_bad_input_gives_one_clear_error",
                            "tests/test_scripts.py::test_compare_runs_on_fake_runs"], [
-        ('                              a.guidance, pick)', '                              a.guidance)',
-         "bench.py --pick not reaching the evaluation"),
+        ('                                  a.guidance, pick, verdicts=bool(a.videos))',
+         '                                  a.guidance, verdicts=bool(a.videos))', "bench.py --pick not reaching the evaluation"),
         ('        pick = train.make_pick(paths)\n', '        pick = None\n', "bench.py --pick not loaded"),
         ('    keys = ("task", "consistency", *(("pick",) if all("pick" in e for rs in groups.values() for r in rs',
          '    keys = ("task", "consistency", *(("pick",) if any("pick" in e for rs in groups.values() for r in rs',
@@ -960,6 +986,9 @@ MUTANTS = {
          '    return -(logp * valid).mean()', 'the pointing loss averaged over terms it does not have'),
     ]),
     "models.py (real backends)": (["tests/test_real_backends.py"], [
+        ('decoder_inject_noise=(False, False), downsample_type=("spatiotemporal",),',
+         'decoder_inject_noise=(False, False), downsample_type=("spatial",),',
+         "the tiny LTX-2's VAE making more frames than the model's, as diffusers' test config does"),
         ('    missing = [part for part in parts if not os.path.isdir(os.path.join(path, part))]', '    missing = []',
          "a folder that is not a diffusers pipeline's left to fail inside diffusers"),
         ("        return z * s / k + m if inverse else (z - m) * k / s",

@@ -580,12 +580,15 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
         saved = torch.load(lora, weights_only=True)["lora"]
         assert all(torch.equal(m.state_dict()[k], v) for k, v in saved.items())
         r = run("bench.py", "--model", model, "--lora", lora, "--judge", judge, "--dataset", held, "--n", "2",
-                "--steps", "2", "--batch", "1", "--guidance", "2", "--png", str(tmp_path / "b.png"))
+                "--steps", "2", "--batch", "1", "--guidance", "2", "--png", str(tmp_path / "b.png"),
+                "--videos", str(tmp_path / "vid"))
         assert r.returncode == 0, r.stderr[-2000:]        # guided: the empty caption through Gemma and connectors
         assert f"model={model} + {lora} judge={judge} bench={held}" in r.stdout and "| task " in r.stdout
         assert "steps=2 guidance=2" in r.stdout
         assert f"Executor: {lora}, {len(saved)} LoRA weights loaded (rank 8, 1 steps of --model {model})" in r.stdout
         assert (tmp_path / "b.png").exists()
+        assert [json.loads(line)["video"] for line in open(tmp_path / "vid" / "videos.jsonl")] == ["000.mp4", "001.mp4"]
+        assert world.load_video(str(tmp_path / "vid" / "001.mp4")).shape == (m.frames, m.height, m.width, 3)
         import bench
         import train
         assert set(bench.REAL_MODELS) == set(train.REAL_MODELS)   # bench.py offers what train.py loads
@@ -1221,6 +1224,28 @@ def test_an_mp4_or_webm_video_is_read_through_pyav_and_without_it_is_a_clear_err
                     str(tmp_path / "x.jsonl")])
     assert e.value.code == 2 and "needs av: pip install" in capsys.readouterr().err
     assert not (tmp_path / "x.jsonl").exists()
+
+
+def test_a_real_models_bench_videos_are_written_as_mp4s_at_its_frame_rate(tmp_path):
+    """bench.save_videos with a real model's frame rate (bench.py --videos): each video an mp4 through
+    world.write_video, H.264 at crf 18, which reads back as the frames written, to within what the codec loses; an
+    odd height or width loses its last row or column (4:2:0 needs them even)."""
+    import av
+    import bench
+    y, x = np.mgrid[:33, :31]
+    v = np.stack([np.stack([6 * x + 10 * i, 5 * y, np.full_like(x, 20 * i)], -1) for i in range(9)]).astype(np.uint8)
+    videos = np.stack([v, v[::-1]])
+    pairs = [SimpleNamespace(task=SimpleNamespace(text=t)) for t in ("[a]: go", "[b]: stop")]
+    verdicts = {"task": [True, None], "agent": [False, True], "consistency": [True, True]}
+    index = bench.save_videos(str(tmp_path / "out"), videos, pairs, ["D a", "D b"], verdicts, fps=24.0)
+    rows = [json.loads(line) for line in open(index)]
+    assert rows[1] == {"video": "001.mp4", "task": "[b]: stop", "prompt": "D b",
+                       "verdicts": {"task": None, "agent": True, "consistency": True}}
+    for i, r in enumerate(rows):
+        got = world.load_video(str(tmp_path / "out" / r["video"]))
+        assert got.shape == (9, 32, 30, 3) and np.abs(got.astype(int) - videos[i, :, :32, :30]).mean() < 3
+        with av.open(str(tmp_path / "out" / r["video"])) as c:
+            assert c.streams.video[0].average_rate == 24 and c.streams.video[0].codec_context.name == "h264"
 
 
 def test_label_videos_writes_the_sft_file_from_the_vlms_answers(tmp_path):

@@ -7,6 +7,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from conftest import ROOT, exit_2, run
 
@@ -53,6 +54,29 @@ def test_bench_smoke_json(tiny_ckpt):
         assert k in res["valid"] and k in res["successes"]
     assert res["n"] == 4 and res["seconds"] > 0
     assert "| task" in r.stdout
+
+
+def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, tmp_path, capsys):
+    """bench.py --videos DIR: each evaluated video as a file (the toy's: a GIF of its 6 frames at 128 px), and
+    videos.jsonl, a row a video in the bench's order with T, the prompt given and the verdicts the table counts. A
+    folder that already holds an index is refused before any work, and so is --videos beside a diagnostic."""
+    import bench
+    import world
+    r = run("bench.py", "--checkpoint", tiny_ckpt, "--condition", "vlm", "--n", "3", "--steps", "2", "--json",
+            "--videos", str(tmp_path / "v"))
+    assert r.returncode == 0 and f"wrote 3 videos and {tmp_path / 'v' / 'videos.jsonl'}" in r.stdout, r.stderr
+    res = json.loads(r.stdout.splitlines()[-1])
+    rows = [json.loads(line) for line in open(tmp_path / "v" / "videos.jsonl")]
+    pairs = world.bench_pairs(bench.DEFAULT_ERROR_RATE)[:3]
+    assert [(r["video"], r["task"], r["prompt"]) for r in rows] == [
+        (f"{i:03d}.gif", p.task.text, d) for i, (p, d) in enumerate(zip(pairs, bench.prompts_for(pairs, "vlm")))]
+    for k in bench.KEYS:                      # the table's successes, video by video
+        assert sum(r["verdicts"][k] is True for r in rows) == res["successes"][k]
+    gif = Image.open(tmp_path / "v" / "000.gif")
+    assert gif.n_frames == world.F and gif.size == (8 * world.W, 8 * world.H) and "verdicts" not in res
+    assert "already holds videos.jsonl" in exit_2(bench.main, ["--n", "2", "--videos", str(tmp_path / "v")], capsys)
+    assert "is a file, not a directory" in exit_2(bench.main, ["--videos", str(tmp_path / "v" / "000.gif")], capsys)
+    assert "--videos is not read by --handoff" in exit_2(bench.main, ["--handoff", "task,vlm", "--videos", "x"], capsys)
 
 
 def test_bench_is_deterministic(tiny_ckpt):
