@@ -289,9 +289,9 @@ def save_videos(out_dir: str, videos: np.ndarray, pairs: list, prompts: list[str
                 fps: float | None = None) -> str:
     """Every evaluated video as a file to watch (bench.py --videos), and beside them out_dir/VIDEO_INDEX, a row a
     video: its file, the bench pair's T ("task"), the prompt the model was given and the bench's three verdicts
-    ("verdicts": true, false, or null: no judgment; evaluate's). With `fps` (a real model's frame rate) each video is an mp4 at its
-    own size (world.write_video: through PyAV, in requirements-real.txt); without, a GIF enlarged to 128 px rows,
-    400 ms a frame, as the toy's rollout GIFs. Returns the index's path."""
+    ("verdicts": true, false, or null: no judgment; evaluate's). With `fps` (a real model's frame rate) each video
+    is an mp4 at its own size (world.write_video: through PyAV, in requirements-real.txt); without, a GIF enlarged
+    to 128 px rows, 400 ms a frame, as the toy's rollout GIFs. Returns the index's path."""
     from PIL import Image
     os.makedirs(out_dir, exist_ok=True)
     rows = []

@@ -986,8 +986,8 @@ MUTANTS = {
          '    return -(logp * valid).mean()', 'the pointing loss averaged over terms it does not have'),
     ]),
     "models.py (real backends)": (["tests/test_real_backends.py"], [
-        ('decoder_inject_noise=(False, False), downsample_type=("spatiotemporal",),',
-         'decoder_inject_noise=(False, False), downsample_type=("spatial",),',
+        ('            downsample_type=("spatiotemporal",), upsample_residual=(False,), upsample_factor=(1,),',
+         '            downsample_type=("spatial",), upsample_residual=(False,), upsample_factor=(1,),',
          "the tiny LTX-2's VAE making more frames than the model's, as diffusers' test config does"),
         ('    missing = [part for part in parts if not os.path.isdir(os.path.join(path, part))]', '    missing = []',
          "a folder that is not a diffusers pipeline's left to fail inside diffusers"),
