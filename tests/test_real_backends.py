@@ -388,6 +388,8 @@ def test_ltx2_random_has_ltx2_19bs_sizes():
     assert count == pytest.approx({"transformer": 18.88, "text_encoder": 11.77, "connectors": 1.43, "vae": 1.22},
                                   abs=0.01)
     assert m.latent_shape() == (128, 15, 12, 18)
+    z = torch.empty(1, 128, 16, 12, 18, device="meta", dtype=torch.bfloat16)      # the first frame's latent and x_1's
+    assert m.vae.decode(z, return_dict=False)[0].shape == (1, 3, 121, 384, 576)    # back to its 121 frames
     assert {p.dtype for p in m.parameters()} == {torch.bfloat16} and m.max_len == 1024
     assert torch.get_default_dtype() == torch.float32          # the build's bf16 default does not leak
     for script in ("train.py", "bench.py"):
@@ -410,6 +412,16 @@ def test_hunyuan15_random_has_hunyuanvideo15_480ps_sizes():
     for script in ("train.py", "bench.py"):
         r = run(script, "--model", "hunyuan15-random")
         assert r.returncode == 2 and "needs a CUDA GPU" in r.stderr    # this machine has none
+
+
+@pytest.mark.parametrize("name", ["ltx", "hy"])
+def test_a_tiny_model_decodes_its_state_into_videos_of_its_frame_count(name, request):
+    """decode(x_1) of a tiny backend is a video of model.frames frames, the count the +SFT videos are held to, as at
+    the real sizes (test_ltx2_random_has_ltx2_19bs_sizes decodes LTX-2's 121). The tiny LTX-2 made 9 of 5 with
+    diffusers' test VAE, whose encoder halved space but not time (stop 118)."""
+    m, f0, _, _ = request.getfixturevalue(name)
+    video = m.decode(torch.randn(len(f0), *m.latent_shape(), generator=torch.Generator().manual_seed(0)), f0)
+    assert video.shape == (len(f0), m.frames, m.height, m.width, 3) and m.frames == 5
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15])
