@@ -1612,23 +1612,16 @@ def task_groups(row: dict) -> dict:
 def sft_rows(path: str, model, need: int) -> list[dict]:
     """--sft_dataset's rows, {"video": path, "task": T}, every one checked before training starts: JSON with the two
     fields, a video file (world.video_length) of the model's frame count, a task the model's text path takes. A bad
-    row is a ValueError naming its line; fewer than `need` rows (--batch) is one too."""
-    rows = []
-    with open(path) as f:
-        for i, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            try:
-                r = json.loads(line)
-                if not (isinstance(r, dict) and isinstance(r.get("video"), str) and isinstance(r.get("task"), str)):
-                    raise ValueError('a row is {"video": FILE, "task": T}')
-                r = {"video": os.path.join(os.path.dirname(path), r["video"]), "task": r["task"]}
-                if (n := world.video_length(r["video"])) != model.frames:
-                    raise ValueError(f"{r['video']} has {n} frames; the model makes {model.frames}")
-                model.check_prompts([r["task"]])
-            except (ValueError, OSError, ImportError) as e:   # a JSON error is a ValueError; a missing or unread file,
-                raise ValueError(f"{path} line {i}: {e}") from None   # OSError; an mp4 without PyAV, ImportError
-            rows.append(r)
+    row is a ValueError naming its line (world.read_jsonl); fewer than `need` rows (--batch) is one too."""
+    def check(r: dict) -> dict:
+        if not (isinstance(r, dict) and isinstance(r.get("video"), str) and isinstance(r.get("task"), str)):
+            raise ValueError('a row is {"video": FILE, "task": T}')
+        r = {"video": os.path.join(os.path.dirname(path), r["video"]), "task": r["task"]}
+        if (n := world.video_length(r["video"])) != model.frames:
+            raise ValueError(f"{r['video']} has {n} frames; the model makes {model.frames}")
+        model.check_prompts([r["task"]])
+        return r
+    rows = [r for _, r in world.read_jsonl(path, "--sft_dataset", check)]
     if len(rows) < need:
         raise ValueError(f"--sft_dataset {path!r} has {len(rows)} videos, fewer than --batch {need}")
     return rows

@@ -831,33 +831,21 @@ def load_dataset(path: str) -> list[dict]:
     """A WorldTasks JSONL file: one {"image", "task", "description", "agent", "family"} per line (image a path,
     relative to the file), and the taxonomy's "agent_type" and "task_type" where make_worldtasks wrote them (a
     category, or null). Raises ValueError "path line N: ..." on the first bad line, naming the problem."""
-    import json
     import os
-    if not os.path.isfile(path):
-        raise ValueError(f"dataset {path!r} " + ("is a directory, not a JSONL file" if os.path.isdir(path) else
-                                                 "does not exist"))
-    rows = []
-    with open(path) as f:
-        for n, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            try:
-                r = json.loads(line)
-                missing = [k for k in ("image", "task", "description") if not isinstance(r.get(k), str) or not r[k]]
-                if missing:
-                    raise ValueError(f"missing or empty {', '.join(missing)}")
-                split_task(r["task"])
-                for key, (_, options) in TAXONOMY_QUESTIONS.items():
-                    if r.get(key) is not None and r[key] not in options:
-                        raise ValueError(f"{key} {r[key]!r} is not one of the taxonomy's categories "
-                                         f"({', '.join(options)})")
-                r["image"] = os.path.join(os.path.dirname(os.path.abspath(path)), r["image"])
-                if not os.path.isfile(r["image"]):
-                    raise ValueError(f"image {r['image']!r} does not exist")
-            except (ValueError, TypeError, AttributeError) as e:
-                raise ValueError(f"{path} line {n}: {e}") from None
-            r["line"] = n
-            rows.append(r)
+
+    def check(r: dict) -> dict:
+        missing = [k for k in ("image", "task", "description") if not isinstance(r.get(k), str) or not r[k]]
+        if missing:
+            raise ValueError(f"missing or empty {', '.join(missing)}")
+        split_task(r["task"])
+        for key, (_, options) in TAXONOMY_QUESTIONS.items():
+            if r.get(key) is not None and r[key] not in options:
+                raise ValueError(f"{key} {r[key]!r} is not one of the taxonomy's categories ({', '.join(options)})")
+        r["image"] = os.path.join(os.path.dirname(os.path.abspath(path)), r["image"])
+        if not os.path.isfile(r["image"]):
+            raise ValueError(f"image {r['image']!r} does not exist")
+        return r
+    rows = [r | {"line": n} for n, r in read_jsonl(path, "dataset", check)]
     if not rows:
         raise ValueError(f"dataset {path!r} has no rows")
     return rows
@@ -914,6 +902,27 @@ def aesthetic_top(scores, keep: float = AESTHETIC_KEEP) -> np.ndarray:
     scores = np.asarray(scores, float)
     n = int(np.ceil(keep * len(scores))) if len(scores) else 0
     return np.sort(np.argsort(-scores, kind="stable")[:n])
+
+
+def read_jsonl(path: str, what: str, check) -> list[tuple[int, dict]]:
+    """The rows of a JSONL file as (line number, check(row)), blank lines skipped: what load_dataset and
+    train.sft_rows read. `check` returns the row it is given, made whole, or raises for a bad one. A missing file, a
+    folder, or a bad row is one ValueError: "{what} 'path' does not exist", or "path line N: what was wrong"."""
+    import json
+    import os
+    if not os.path.isfile(path):
+        raise ValueError(f"{what} {path!r} " + ("is a directory, not a JSONL file" if os.path.isdir(path) else
+                                               "does not exist"))
+    rows = []
+    with open(path) as f:
+        for n, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:    # a JSON error is a ValueError; a missing or unread file, OSError; an mp4 without PyAV, ImportError
+                rows.append((n, check(json.loads(line))))
+            except (ValueError, TypeError, AttributeError, OSError, ImportError) as e:
+                raise ValueError(f"{path} line {n}: {e}") from None
+    return rows
 
 
 def write_jsonl(path: str, rows: list[dict]) -> None:

@@ -1130,6 +1130,8 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
         with pytest.raises(ValueError) as e:
             train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
         assert msg in str(e.value) and str(e.value).startswith(str(tmp_path / "bad.jsonl")), (bad, str(e.value))
+    with pytest.raises(ValueError, match="--sft_dataset '.*' is a directory, not a JSONL file"):
+        train.sft_rows(str(tmp_path), m, 1)                # one line, not an IsADirectoryError's traceback
     (tmp_path / "bad.jsonl").write_text(json.dumps({"video": "v1.npy", "task": "[red square]: " + "go " * 300}))
     with pytest.raises(ValueError, match="line 1: prompt .* tokens; LTX-2's text path takes at most"):
         train.sft_rows(str(tmp_path / "bad.jsonl"), m, 1)
@@ -1137,7 +1139,7 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
         train.sft_rows(str(path), m, 4)
     r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset",
             str(tmp_path / "none.jsonl"), "--run_dir", str(tmp_path / "none"))
-    assert r.returncode == 2 and "No such file or directory" in r.stderr and not (tmp_path / "none").exists()
+    assert r.returncode == 2 and "none.jsonl' does not exist" in r.stderr and not (tmp_path / "none").exists()
     r = run("train.py", "--stage", "distill", "--variant", "sft", "--model", "ltx2-tiny", "--sft_dataset", str(path),
             "--eval_height", "33", "--eval_width", "32", "--run_dir", str(tmp_path / "none"))   # a size the VAE cannot take
     assert r.returncode == 2 and "33" in r.stderr and not (tmp_path / "none").exists(), r.stderr
