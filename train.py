@@ -29,6 +29,7 @@ import contextlib
 import copy
 import dataclasses
 import hashlib
+import importlib.util
 import json
 import os
 import random
@@ -1052,23 +1053,50 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     --executor_prompt; same noise). A real model's videos are thinned to 24 frames and rows of at most 128 px: at
     LTX-2's 121 frames of 384 x 576 the full GIF did not finish writing in a minute (measured on a GPU, docs/real-models.md).
     Only the toy's 16-px rows are enlarged (8x); the scale once came from the first frames, which are the toy
-    bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured)."""
+    bench's 16 px for a real model too, and made a 116 MB GIF of 1024-px rows at LTX-2's size (measured).
+    A real model's rows are also written whole, beside the GIF: write_rollout_mp4s."""
     pairs = eval_pairs(args)[:n]
     frame0 = np.stack([p.frame0 for p in pairs])
     batch = args.micro_batch or n
+    prompts = bench.prompts_for(pairs, args.executor_prompt)
     with models.adapters_disabled(model):
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
-    exe = models.generate(model, frame0, bench.prompts_for(pairs, args.executor_prompt), args.sample_steps, seed=0,
-                          batch=batch)
+    exe = models.generate(model, frame0, prompts, args.sample_steps, seed=0, batch=batch)
+    if args.model != "toy":
+        write_rollout_mp4s(side_by_side(demo, exe), pairs, prompts, os.path.splitext(path)[0],
+                           getattr(model, "fps", 24.0))
     F, H = demo.shape[1:3]   # a real model's 121 frames of 384 px: 24 frames evenly spaced, rows of at most 128 px
     keep, k = np.linspace(0, F - 1, min(F, 24)).round().astype(int), -(-H // 128)
-    demo, exe = demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k]          # the toy's 6 frames of 16 px: unchanged
-    scale = max(1, scale * world.H // demo.shape[2])   # enlarged to the toy's 128 px rows; a real model's are already
-    sep = np.full((*demo.shape[:3], 2, 3), 255, np.uint8)
-    grid = np.concatenate([demo, sep, exe], axis=3)                      # (n, F, H, 2W + 2, 3)
+    grid = side_by_side(demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k])   # the toy's 6 frames of 16 px: unchanged
+    scale = max(1, scale * world.H // grid.shape[2])   # enlarged to the toy's 128 px rows; a real model's are already
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
     imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """(n, F, H, W, 3) twice -> (n, F, H, 2W + 2, 3): left, a white line 2 px wide, right."""
+    sep = np.full((*left.shape[:3], 2, 3), 255, np.uint8)
+    return np.concatenate([left, sep, right], axis=3)
+
+
+def write_rollout_mp4s(grid: np.ndarray, pairs: list, prompts: list[str], out_dir: str, fps: float) -> None:
+    """A real model's rollout rows whole, every frame at its own size (the GIF thins them): out_dir/000.mp4, ...,
+    the Demonstrator left and the Executor right, at the model's frame rate (world.write_video), and
+    out_dir/videos.jsonl, a row a video: its file, the pair's T ("task"), the Demonstrator's prompt and the
+    Executor's. Without PyAV (requirements-real.txt) a line says so and the GIF alone is written."""
+    if importlib.util.find_spec("av") is None:
+        print(f"  {out_dir}/*.mp4 not written: PyAV is not installed (pip install -r requirements-real.txt); "
+              f"the GIF is", flush=True)
+        return
+    os.makedirs(out_dir, exist_ok=True)
+    rows = []
+    for i, (v, p, prompt) in enumerate(zip(grid, pairs, prompts)):
+        world.write_video(os.path.join(out_dir, f"{i:03d}.mp4"), v, fps)
+        rows.append({"video": f"{i:03d}.mp4", "task": p.task.text, "demonstrator": p.d_vlm, "executor": prompt})
+    world.write_jsonl(os.path.join(out_dir, "videos.jsonl"), rows)
+    print(f"  wrote {len(rows)} rollout videos, the Demonstrator beside the Executor, to {out_dir}/ ({fps:g} fps; "
+          f"index: videos.jsonl)", flush=True)
 
 
 # ================================================================================================================

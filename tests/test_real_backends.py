@@ -2,6 +2,7 @@
 interface, the time convention at the boundary, LoRA on video attention with the Demonstrator = adapters off, LoRA
 files, and one WMSD step through train.py. Skipped where the optional packages of requirements-real.txt are absent
 (CI installs them)."""
+import importlib.util
 import inspect
 import json
 import re
@@ -585,6 +586,8 @@ def test_one_wmsd_run_on_a_tiny_real_model(model, judge, extra, tmp_path):
     step = [json.loads(line) for line in open(tmp_path / "rl.jsonl") if '"A"' in line][0]
     assert step["invalid"] + sum(1 for a in step["A"] if a != 0) >= 1 and step["r_distill"] < 0
     assert judge != "toy" or (step["invalid"] == 0 and all(a != 0 for a in step["A"]))
+    assert "rollout videos, the Demonstrator beside the Executor" in r.stdout
+    assert (tmp_path / "rollouts_rl.gif").exists() and (tmp_path / "rollouts_rl" / "001.mp4").exists()
     if model == "ltx2-tiny" and judge != "toy":   # the saved Executor, benched on a held-out WorldTasks file
         lora, held = str(tmp_path / "executor_awm.pt"), _toy_dataset(tmp_path / "bench", 2, seed=7)
         m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"])
@@ -1049,16 +1052,32 @@ def test_aesthetic_ranking_keeps_the_top_90_percent(tmp_path):
     assert np.array_equal(loaded(imgs), s)
 
 
-def test_a_real_models_rollout_gif_is_thinned_not_enlarged(tmp_path):
+def test_real_rollouts_a_thinned_gif_and_each_row_whole_as_an_mp4(tmp_path, monkeypatch, capsys):
     """train.write_rollout_gif: the toy's 16-px rows are enlarged 8x to 128 px; a real model's rows are at most
     128 px and not enlarged past that. The scale once came from the first frames, which are the toy bench's 16 px
     for a real model too: at LTX-2's size it wrote a 116 MB GIF of 1024-px rows (measured on a GPU). Here a tiny
-    LTX-2 at 64 x 64: rows of 128 px (2x), not 512 (8x)."""
+    LTX-2 at 64 x 64: rows of 128 px (2x), not 512 (8x). Beside the GIF, each row whole (write_rollout_mp4s): an
+    mp4 of every frame at the model's size, the Demonstrator left, the Executor right, indexed with their prompts;
+    without PyAV a line says so and the GIF is still written."""
     m = models.LTX2Video.tiny(world.VOCAB + ["[", "]:"], height=64, width=64)
     train.BENCH = None
-    train.write_rollout_gif(m, str(tmp_path / "g.gif"), train.Args(model="ltx2-tiny", sample_steps=1), n=2)
+    args = train.Args(model="ltx2-tiny", sample_steps=1)
+    train.write_rollout_gif(m, str(tmp_path / "g.gif"), args, n=2)
     gif = Image.open(tmp_path / "g.gif")
     assert gif.size == (2 * 128 + 2 * 2, 2 * 128) and gif.n_frames <= 24
+    rows, pairs = [json.loads(line) for line in open(tmp_path / "g" / "videos.jsonl")], train.eval_pairs(args)[:2]
+    assert rows == [{"video": f"00{i}.mp4", "task": p.task.text, "demonstrator": p.d_vlm, "executor": p.task.text}
+                    for i, p in enumerate(pairs)]
+    video = world.load_video(str(tmp_path / "g" / "001.mp4"))
+    assert video.shape == (m.frames, 64, 2 * 64 + 2, 3)
+    frame0 = pairs[1].frame0.repeat(4, 0).repeat(4, 1).astype(int)     # the first frame, given: both halves show it
+    assert np.abs(video[0, :, :64].astype(int) - frame0).mean() < 12 and (video[:, :, 64:66] > 200).all()
+    assert np.abs(video[0, :, 66:].astype(int) - frame0).mean() < 12
+    spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "av" else spec(name, *a))
+    train.write_rollout_gif(m, str(tmp_path / "h.gif"), args, n=2)
+    assert (tmp_path / "h.gif").exists() and not (tmp_path / "h").exists()
+    assert "h/*.mp4 not written: PyAV is not installed" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("cls", [models.LTX2Video, models.HunyuanVideo15], ids=["ltx2", "hunyuan15"])
