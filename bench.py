@@ -233,6 +233,12 @@ def fig7_shown(res: dict, part: str) -> list[str]:
     return [g for g in res[part] if res["sizes"][part][g] > FIG7_SUPPORT * res["n"]]
 
 
+def subgroup_score(counts) -> float:
+    """Fig. 7's score of a subgroup (a task family or an agent type) from its (successes, valid judgments); nan where
+    none of its videos was judged, as the bench table's scores: no judgment is not a failure."""
+    return counts[0] / counts[1] if counts[1] else float("nan")
+
+
 def fig7_lines(res: dict) -> list[str]:
     """Fig. 7 as text, one line a panel: the task score per task type and the agent score per agent type, "score
     (successes/valid)", for the subgroups with more than FIG7_SUPPORT of the bench's pairs, as the paper shows them.
@@ -240,7 +246,7 @@ def fig7_lines(res: dict) -> list[str]:
     lines = []
     for part, key in FIG7.items():
         sizes, big = res["sizes"][part], fig7_shown(res, part)
-        cells = ", ".join(f"{g} {s / max(v, 1):.3f} ({s}/{v})" for g, (s, v) in res[part].items() if g in big)
+        cells = ", ".join(f"{g} {subgroup_score(c):.3f} ({c[0]}/{c[1]})" for g, c in res[part].items() if g in big)
         small = ", ".join(f"{g} {s}/{v} ({sizes[g]} pairs)" for g, (s, v) in res[part].items() if g not in big)
         lines.append(f"Fig. 7, {key} score by {key} type (over {FIG7_SUPPORT:.0%} of the bench): {cells or 'none'}"
                      + (f"; at most {FIG7_SUPPORT:.0%}, not shown in the paper's figure: {small}" if small else ""))

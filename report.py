@@ -35,7 +35,7 @@ import numpy as np
 
 import models
 from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, FIG7, FIG7_SUPPORT, KEYS, curve_band, evaluate, fig7_shown, figure,
-                   file_digest, fmt, mean_sd, output_path_error, read_run, save_figure, save_strip)
+                   file_digest, fmt, mean_sd, output_path_error, read_run, save_figure, save_strip, subgroup_score)
 
 
 # name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
@@ -167,11 +167,6 @@ def per_seed_rows(seeds: list[int], finals: dict, curves: dict) -> list[str]:
         rows += [f"| {label} | {s} | " + " | ".join(f"{ev[-1][k]:.3f}" for k in K) +
                  f" | {AT['peak'](ev, 'task'):.3f} | {AT['peak'](ev, 'avg'):.3f} |" for s, ev in zip(seeds, runs)]
     return rows
-
-
-def subgroup_score(counts) -> float:
-    """Fig. 7's score of a subgroup (a task family or an agent type) from its (successes, valid judgments)."""
-    return counts[0] / max(counts[1], 1)
 
 
 def subgroup_rows(seeds: list[int], groups: dict) -> list[str]:

@@ -581,8 +581,6 @@ MUTANTS = {
     ]),
     "report.py (Fig. 7 per seed)": (["tests/test_report.py::test_subgroup_rows_give_each_seed_its_counts",
                                      "tests/test_report.py::test_quick_report_writes_every_file_and_reuses_finished_runs"], [
-        ('    return counts[0] / max(counts[1], 1)', '    return counts[0] / max(counts[1] + 1, 1)',
-         "Fig. 7's scores with one judgment too many"),
         ('for c in r[part].values()) + " |"', 'for c in r["families"].values()) + " |"',
          "Fig. 7's table per seed leaving out the agent types"),
         ('            for label, rs in groups.items() for s, r in zip(seeds, rs)]',
@@ -634,6 +632,14 @@ MUTANTS = {
         ('            out[part][g] = out[part].get(g, 0) + 1', '            out[part][g] = 1', "subgroup sizes not counted"),
         ('        small = ", ".join(f"{g} {s}/{v} ({sizes[g]} pairs)" for g, (s, v) in res[part].items() if g not in big)',
          '        small = ""', "the subgroups at 5% or under dropped from the text"),
+    ]),
+    "bench.py (Fig. 7's scores)": ([FIG7_SUPPORT, "tests/test_report.py::test_subgroup_rows_give_each_seed_its_counts"], [
+        ('    return counts[0] / counts[1] if counts[1] else float("nan")', '    return counts[0] / max(counts[1], 1)',
+         "Fig. 7's subgroup without a judgment scored 0, as if every video failed"),
+        ('    return counts[0] / counts[1] if counts[1] else float("nan")',
+         '    return counts[0] / (counts[1] + 1) if counts[1] else float("nan")', "Fig. 7's scores with one judgment too many"),
+        ('f"{g} {subgroup_score(c):.3f} ({c[0]}/{c[1]})"', 'f"{g} {subgroup_score(c):.3f} ({c[0]}/{c[1] + 1})"',
+         "Fig. 7's lines writing a count that is not the score's"),
     ]),
     "report.py (Fig. 7's 5% support)": (["tests/test_report.py::test_reports_fig7_table_shows_the_subgroups_over_5_percent_"
                                          "and_keeps_the_rest_per_seed"], [

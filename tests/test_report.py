@@ -122,6 +122,9 @@ def test_fig7_shows_the_subgroups_over_5_percent_of_the_bench_and_names_the_rest
     assert shown.endswith("navigation 0.500 (15/30), perception 1.000 (2/2), positioning 0.400 (2/5)")
     assert rest.endswith("not shown in the paper's figure: vehicle control 1/2 (2 pairs)")      # 2/40 = 5%: not over
     assert agent.endswith("human character 0.000 (0/37), vehicle 0.667 (2/3)") and "; " not in agent   # 3/40 = 7.5%
+    unjudged = [_j(None if 30 <= i < 33 else i % 2 == 0, i < 2, True) for i in range(40)]   # no perception judged
+    res["families"] = bench.family_scores(pairs, unjudged)
+    assert "perception nan (0/0)" in bench.fig7_lines(res)[0]            # no judgment is not a failure (0.000)
 
 
 def test_reports_fig7_table_shows_the_subgroups_over_5_percent_and_keeps_the_rest_per_seed():
@@ -156,11 +159,12 @@ def test_per_seed_rows_give_each_seed_its_own_values():
 
 def test_subgroup_rows_give_each_seed_its_counts():
     """report.subgroup_rows: Fig. 7's row per (label, seed), task families then agent types, each score with the
-    successes and valid judgments it is the ratio of (a subgroup without a valid judgment scores 0)."""
+    successes and valid judgments it is the ratio of (a subgroup without a valid judgment scores nan, as the bench
+    table's scores: no judgment is not a failure)."""
     ev = lambda fam, agent: {"families": fam, "agent_types": agent}  # noqa: E731
     assert report.subgroup_rows([3, 7], {"M": [ev({"nav": [1, 4], "pos": [0, 0]}, {"sprite": [2, 3]}),
                                                ev({"nav": [3, 4], "pos": [2, 5]}, {"sprite": [0, 3]})]}) == [
-        "| M | 3 | 0.250 (1/4) | 0.000 (0/0) | 0.667 (2/3) |", "| M | 7 | 0.750 (3/4) | 0.400 (2/5) | 0.000 (0/3) |"]
+        "| M | 3 | 0.250 (1/4) | nan (0/0) | 0.667 (2/3) |", "| M | 7 | 0.750 (3/4) | 0.400 (2/5) | 0.000 (0/3) |"]
 
 
 def test_quick_report_writes_every_file_and_reuses_finished_runs(tiny_ckpt, tmp_path):
