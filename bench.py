@@ -676,6 +676,12 @@ def save_strip(videos: np.ndarray, path: str, rows: int = 8, scale: int = 6) -> 
     Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(path)
 
 
+def side_by_side(left: np.ndarray, right: np.ndarray, line: int = 2) -> np.ndarray:
+    """Two batches of videos (n, F, H, W, 3) -> (n, F, H, 2W + line, 3): left, a white line `line` px wide, right."""
+    sep = np.full((*left.shape[:3], line, 3), 255, np.uint8)
+    return np.concatenate([left, sep, right], axis=3)
+
+
 def mean_sd(xs) -> tuple[float, float]:
     """Mean and sample standard deviation (0 for one value) over seeds."""
     xs = np.asarray(list(xs), float)

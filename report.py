@@ -35,7 +35,8 @@ import numpy as np
 
 import models
 from bench import (DEFAULT_ERROR_RATE, DEMO_ROW, FIG7, FIG7_SUPPORT, KEYS, curve_band, evaluate, fig7_shown, figure,
-                   file_digest, fmt, mean_sd, output_path_error, read_run, save_figure, save_strip, subgroup_score)
+                   file_digest, fmt, mean_sd, output_path_error, read_run, save_figure, save_strip, side_by_side,
+                   subgroup_score)
 
 
 # name -> (train.py stage, flags beyond the budget's); one run per (name, seed); the comment says what each feeds.
@@ -313,8 +314,7 @@ def write_report(out: str, dirs: dict, seeds: list[int], n: int, init: str = "")
               *fig7_table(seeds, groups)]
     # Fig. 8: with and without the consistency reward
     a, b = (finals[(name, seeds[0])][1][:6] for name in ("wmsd", "no_cons"))
-    sep = np.full((*a.shape[:3], 1, 3), 255, np.uint8)         # a white column between the two videos of a row
-    save_strip(np.concatenate([a, sep, b], axis=3), os.path.join(out, "fig8.png"), rows=6, scale=5)
+    save_strip(side_by_side(a, b, line=1), os.path.join(out, "fig8.png"), rows=6, scale=5)
     lines += ["", "## Fig. 8: with and without the consistency reward", "",
               f"Frames of the first 6 bench videos (seed {seeds[0]}), left WMSD, right WMSD without r_cons:", "",
               "![](fig8.png)", "", "| | task | agent | consistency |", "|---|---|---|---|"]

@@ -1063,21 +1063,15 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
         demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
     exe = models.generate(model, frame0, prompts, args.sample_steps, seed=0, batch=batch)
     if args.model != "toy":
-        write_rollout_mp4s(side_by_side(demo, exe), pairs, prompts, os.path.splitext(path)[0],
+        write_rollout_mp4s(bench.side_by_side(demo, exe), pairs, prompts, os.path.splitext(path)[0],
                            getattr(model, "fps", 24.0))
     F, H = demo.shape[1:3]   # a real model's 121 frames of 384 px: 24 frames evenly spaced, rows of at most 128 px
     keep, k = np.linspace(0, F - 1, min(F, 24)).round().astype(int), -(-H // 128)
-    grid = side_by_side(demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k])   # the toy's 6 frames of 16 px: unchanged
+    grid = bench.side_by_side(demo[:, keep, ::k, ::k], exe[:, keep, ::k, ::k])  # the toy's 6 frames of 16 px
     scale = max(1, scale * world.H // grid.shape[2])   # enlarged to the toy's 128 px rows; a real model's are already
     frames = [np.concatenate(list(grid[:, f]), axis=0) for f in range(grid.shape[1])]
     imgs = [Image.fromarray(f).resize((f.shape[1] * scale, f.shape[0] * scale), Image.NEAREST) for f in frames]
     imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=400, loop=0)
-
-
-def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """(n, F, H, W, 3) twice -> (n, F, H, 2W + 2, 3): left, a white line 2 px wide, right."""
-    sep = np.full((*left.shape[:3], 2, 3), 255, np.uint8)
-    return np.concatenate([left, sep, right], axis=3)
 
 
 def write_rollout_mp4s(grid: np.ndarray, pairs: list, prompts: list[str], out_dir: str, fps: float) -> None:

@@ -679,12 +679,18 @@ MUTANTS = {
         ('        c.mux(s.encode())        # what the encoder still holds', '',
          "an mp4 written without the frames the encoder still holds"),
     ]),
+    "bench.py (rollout mp4s)": (["tests/test_real_backends.py::test_real_rollouts_a_thinned_gif_and_each_row_whole_as_"
+                                 "an_mp4"], [
+        ("    sep = np.full((*left.shape[:3], line, 3), 255, np.uint8)",
+         "    sep = np.full((*left.shape[:3], line, 3), 0, np.uint8)",
+         "no white line between the Demonstrator and the Executor"),
+    ]),
     "train.py (rollout mp4s)": (["tests/test_real_backends.py::test_real_rollouts_a_thinned_gif_and_each_row_whole_as_"
                                  "an_mp4"], [
         ('    if args.model != "toy":\n        write_rollout_mp4s(', '    if False:\n        write_rollout_mp4s(',
          "a real run's rollout rows not written whole"),
-        ("        write_rollout_mp4s(side_by_side(demo, exe), pairs,",
-         "        write_rollout_mp4s(side_by_side(exe, demo), pairs,",
+        ("        write_rollout_mp4s(bench.side_by_side(demo, exe), pairs,",
+         "        write_rollout_mp4s(bench.side_by_side(exe, demo), pairs,",
          "the rollout mp4s with the Executor left and the Demonstrator right"),
         ('                           getattr(model, "fps", 24.0))', "                           24.0)",
          "the rollout mp4s at 24 fps, not the model's rate"),
@@ -698,9 +704,6 @@ MUTANTS = {
          "the rollout index naming T as the Demonstrator's prompt"),
         ('    if importlib.util.find_spec("av") is None:', "    if False:",
          "a run without PyAV failing at its end where the GIF could be written"),
-        ("    sep = np.full((*left.shape[:3], 2, 3), 255, np.uint8)",
-         "    sep = np.full((*left.shape[:3], 2, 3), 0, np.uint8)",
-         "no white line between the Demonstrator and the Executor"),
     ]),
     "models.py (+SFT on a real model)": (SFT, [
         ("        return self._normalise(self.vae.encode(img).latent_dist.mode().float())[:, :, 1:]",
