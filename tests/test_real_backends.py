@@ -1202,6 +1202,7 @@ def test_the_sft_baseline_on_a_real_model_trains_its_lora_on_a_file_of_labelled_
     assert saved["meta"]["variant"] == "sft" and any(v.abs().sum() > 0 for k, v in saved["lora"].items()
                                                      if "lora_B" in k)                   # B starts at 0: trained
     assert "3 labelled videos from" in r.stdout and (d / "rollouts_sft.gif").exists()
+    assert (d / "rollouts_sft" / "000.mp4").exists()                  # the GIF's rows whole
     r = run("bench.py", "--model", "ltx2-tiny", "--lora", str(d / "executor_sft.pt"), "--n", "2", "--steps", "2")
     assert r.returncode == 0 and "2 steps of --model ltx2-tiny" in r.stdout, r.stderr
 
