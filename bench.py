@@ -291,17 +291,16 @@ def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: flo
 VIDEO_INDEX = "videos.jsonl"    # save_videos' index of a folder of bench videos
 
 
-def save_videos(out_dir: str, videos: np.ndarray, pairs: list, prompts: list[str], verdicts: dict,
-                fps: float | None = None) -> str:
-    """Every evaluated video as a file to watch (bench.py --videos), and beside them out_dir/VIDEO_INDEX, a row a
-    video: its file, the bench pair's T ("task"), the prompt the model was given and the bench's three verdicts
-    ("verdicts": true, false, or null: no judgment; evaluate's). With `fps` (a real model's frame rate) each video
-    is an mp4 at its own size (world.write_video: through PyAV, in requirements-real.txt); without, a GIF enlarged
-    to 128 px rows, 400 ms a frame, as the toy's rollout GIFs. Returns the index's path."""
+def save_videos(out_dir: str, videos: np.ndarray, rows: list[dict], fps: float | None = None) -> str:
+    """Videos as files to watch, and beside them out_dir/VIDEO_INDEX, a row a video: {"video": its file, **rows[i]}
+    (bench.py --videos: the pair's T, the prompt given and the bench's three verdicts; train.write_rollout_mp4s: T
+    and both prompts). With `fps` (a real model's frame rate) each video is an mp4 at its own size
+    (world.write_video: through PyAV, in requirements-real.txt); without, a GIF enlarged to 128 px rows, 400 ms a
+    frame, as the toy's rollout GIFs. Returns the index's path."""
     from PIL import Image
     os.makedirs(out_dir, exist_ok=True)
-    rows = []
-    for i, (v, p, prompt) in enumerate(zip(videos, pairs, prompts)):
+    index = []
+    for i, (v, row) in enumerate(zip(videos, rows)):
         name = f"{i:03d}.mp4" if fps else f"{i:03d}.gif"
         if fps:
             world.write_video(os.path.join(out_dir, name), v, fps)
@@ -309,11 +308,10 @@ def save_videos(out_dir: str, videos: np.ndarray, pairs: list, prompts: list[str
             s = max(1, 8 * world.H // v.shape[1])
             imgs = [Image.fromarray(f).resize((f.shape[1] * s, f.shape[0] * s), Image.NEAREST) for f in v]
             imgs[0].save(os.path.join(out_dir, name), save_all=True, append_images=imgs[1:], duration=400, loop=0)
-        rows.append({"video": name, "task": p.task.text, "prompt": prompt,
-                     "verdicts": {k: verdicts[k][i] for k in KEYS}})
-    index = os.path.join(out_dir, VIDEO_INDEX)
-    world.write_jsonl(index, rows)
-    return index
+        index.append({"video": name, **row})
+    path = os.path.join(out_dir, VIDEO_INDEX)
+    world.write_jsonl(path, index)
+    return path
 
 
 def switched_field(model, c_a: dict, c_b: dict, t_switch: float):
@@ -1211,7 +1209,9 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
         print(f"wrote {a.png}")
     if a.videos:          # a real model's frame rate (LTX-2's is its own; HunyuanVideo-1.5's pipeline writes 24)
         fps = getattr(model, "fps", 24.0) if a.model != "toy" else None
-        index = save_videos(a.videos, videos, pairs, prompts_for(pairs, a.condition), verdicts, fps)
+        rows = [{"task": p.task.text, "prompt": prompt, "verdicts": {k: verdicts[k][i] for k in KEYS}}  # null: none
+                for i, (p, prompt) in enumerate(zip(pairs, prompts_for(pairs, a.condition)))]
+        index = save_videos(a.videos, videos, rows, fps)
         print(f"wrote {len(videos)} videos and {index}")
     if a.json:
         print(json.dumps(res))

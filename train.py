@@ -1076,21 +1076,17 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
 
 def write_rollout_mp4s(grid: np.ndarray, pairs: list, prompts: list[str], out_dir: str, fps: float) -> None:
     """A real model's rollout rows whole, every frame at its own size (the GIF thins them): out_dir/000.mp4, ...,
-    the Demonstrator left and the Executor right, at the model's frame rate (world.write_video), and
+    the Demonstrator left and the Executor right, at the model's frame rate (bench.save_videos), and
     out_dir/videos.jsonl, a row a video: its file, the pair's T ("task"), the Demonstrator's prompt and the
     Executor's. Without PyAV (requirements-real.txt) a line says so and the GIF alone is written."""
     if importlib.util.find_spec("av") is None:
         print(f"  {out_dir}/*.mp4 not written: PyAV is not installed (pip install -r requirements-real.txt); "
               f"the GIF is", flush=True)
         return
-    os.makedirs(out_dir, exist_ok=True)
-    rows = []
-    for i, (v, p, prompt) in enumerate(zip(grid, pairs, prompts)):
-        world.write_video(os.path.join(out_dir, f"{i:03d}.mp4"), v, fps)
-        rows.append({"video": f"{i:03d}.mp4", "task": p.task.text, "demonstrator": p.d_vlm, "executor": prompt})
-    world.write_jsonl(os.path.join(out_dir, "videos.jsonl"), rows)
+    rows = [{"task": p.task.text, "demonstrator": p.d_vlm, "executor": prompt} for p, prompt in zip(pairs, prompts)]
+    index = bench.save_videos(out_dir, grid, rows, fps)
     print(f"  wrote {len(rows)} rollout videos, the Demonstrator beside the Executor, to {out_dir}/ ({fps:g} fps; "
-          f"index: videos.jsonl)", flush=True)
+          f"index: {index})", flush=True)
 
 
 # ================================================================================================================

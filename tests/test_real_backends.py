@@ -1278,7 +1278,9 @@ def test_a_real_models_bench_videos_are_written_as_mp4s_at_its_frame_rate(tmp_pa
     videos = np.stack([v, v[::-1]])
     pairs = [SimpleNamespace(task=SimpleNamespace(text=t)) for t in ("[a]: go", "[b]: stop")]
     verdicts = {"task": [True, None], "agent": [False, True], "consistency": [True, True]}
-    index = bench.save_videos(str(tmp_path / "out"), videos, pairs, ["D a", "D b"], verdicts, fps=24.0)
+    index = bench.save_videos(str(tmp_path / "out"), videos, [
+        {"task": p.task.text, "prompt": d, "verdicts": {k: verdicts[k][i] for k in bench.KEYS}}
+        for i, (p, d) in enumerate(zip(pairs, ["D a", "D b"]))], fps=24.0)
     rows = [json.loads(line) for line in open(index)]
     assert rows[1] == {"video": "001.mp4", "task": "[b]: stop", "prompt": "D b",
                        "verdicts": {"task": None, "agent": True, "consistency": True}}

@@ -56,7 +56,7 @@ def test_bench_smoke_json(tiny_ckpt):
     assert "| task" in r.stdout
 
 
-def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, tmp_path, capsys):
+def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, tmp_path, capsys, monkeypatch):
     """bench.py --videos DIR: each evaluated video as a file (the toy's: a GIF of its 6 frames at 128 px), and
     videos.jsonl, a row a video in the bench's order with T, the prompt given and the verdicts the table counts. A
     folder that already holds an index is refused before any work, and so is --videos beside a diagnostic."""
@@ -72,6 +72,13 @@ def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, t
         (f"{i:03d}.gif", p.task.text, d) for i, (p, d) in enumerate(zip(pairs, bench.prompts_for(pairs, "vlm")))]
     for k in bench.KEYS:                      # the table's successes, video by video
         assert sum(r["verdicts"][k] is True for r in rows) == res["successes"][k]
+    evaluate = bench.evaluate      # each video's own verdicts, in order: a pattern the table's counts cannot hide
+    monkeypatch.setattr(bench, "evaluate", lambda *a, **k: (lambda res, v, p: (
+        {**res, "verdicts": {key: [True, False, None] for key in bench.KEYS}}, v, p))(*evaluate(*a, **k)))
+    bench.main(["--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--videos", str(tmp_path / "w")])
+    assert [json.loads(line)["verdicts"] for line in open(tmp_path / "w" / "videos.jsonl")] == [
+        {key: v for key in bench.KEYS} for v in (True, False, None)]
+    monkeypatch.undo()
     gif = Image.open(tmp_path / "v" / "000.gif")
     assert gif.n_frames == world.F and gif.size == (8 * world.W, 8 * world.H) and "verdicts" not in res
     assert "already holds videos.jsonl" in exit_2(bench.main, ["--n", "2", "--videos", str(tmp_path / "v")], capsys)
