@@ -109,6 +109,32 @@ JOINT = {"solved": ("task", "consistency", "solved by a plausible video (task an
                                        "Fig. 10's training task reward)")}
 
 
+TRAINED_PAIRS_ARGS = ("train_pairs", "seed", "error_rate", "train_crowded")   # what train.toy_pairs reads
+
+
+def trained_pairs(path: str, n: int) -> tuple[list, float]:
+    """The first n of the pairs a toy train.py run trained on (bench.py --trained_pairs), made again from the run's
+    flags that its checkpoint records: train.toy_pairs at the run's --train_pairs, --seed, --error_rate and
+    --train_crowded. Evaluated instead of the bench, they ask whether a model fits the pairs it trained on, not only
+    the held-out ones. Returns (pairs, the run's error rate). A ValueError for a checkpoint that trained on none of
+    them, or on fewer than n."""
+    import train     # train imports this module
+    meta = models.load_checkpoint(path)[1]
+    run = meta.get("args", {})
+    if meta.get("stage") not in ("distill", "rl") or run.get("model", "toy") != "toy" or run.get("dataset"):
+        on = f"--dataset {run['dataset']}" if run.get("dataset") else f"--model {run['model']}" if run.get(
+            "model", "toy") != "toy" else f"stage {meta.get('stage', 'not recorded')}"
+        raise ValueError(f"--trained_pairs {path!r} was not trained on the toy VLM's pairs ({on}): give a toy "
+                         "Executor that train.py's distill or rl stage wrote")
+    if meta.get("variant") == "sft":
+        raise ValueError(f"--trained_pairs {path!r} is the +SFT baseline, trained on world videos labelled with "
+                         "short tasks (world.sft_batch), not on the toy VLM's pairs")
+    if n > run["train_pairs"]:
+        raise ValueError(f"--n {n} is more than the {run['train_pairs']} pairs {path!r} trained on")
+    pairs = train.toy_pairs(train.Args(**{k: run[k] for k in TRAINED_PAIRS_ARGS}))
+    return pairs[:n], run["error_rate"]
+
+
 def score_table(judgments: list[dict]) -> dict:
     """judgments: per video {task|agent|consistency: reward.Judgment} -> scores, successes, valid, failures."""
     succ = {k: sum(bool(j[k].yes) for j in judgments) for k in KEYS}
@@ -928,6 +954,11 @@ def main(argv=None):
     p.add_argument("--dataset", default=None, help="a WorldTasks JSONL file whose first --n rows are the bench "
                    "(the paper's WorldTasks-Bench; conditions task, vlm = its description, empty); default: the "
                    "toy bench")
+    p.add_argument("--trained_pairs", default=None, metavar="CKPT",
+                   help="instead of the bench: the first --n of the pairs CKPT's train.py run trained on (a toy "
+                        "Executor's checkpoint records its --train_pairs, --seed, --error_rate; bench.trained_pairs), "
+                        "evaluated with --checkpoint (CKPT itself, or the base on the same pairs): does a model fit "
+                        "the pairs it trained on?")
     p.add_argument("--crowded", action="store_true", help="the crowded bench instead (world.crowded_pairs): 200 "
                    "pairs of the same task kinds on scenes of 5 sprites, where every scene the models saw holds 2-4 "
                    "(the toy's test of transfer, Sec. 4.7, App. A.5)")
@@ -1036,6 +1067,11 @@ def main(argv=None):
         p.error("--checkpoint is a toy model file; a real model is --model_path (+ --lora for its Executor)")
     if a.crowded and a.dataset:
         p.error("--crowded is a toy bench and --dataset another: give one")
+    if a.trained_pairs and (a.real or a.crowded):
+        p.error("--trained_pairs evaluates a toy model on a toy run's training pairs instead of the bench: not with "
+                "--crowded, --dataset, --model or --judge")
+    if a.trained_pairs and a.error_rate != DEFAULT_ERROR_RATE:
+        p.error("--error_rate sets the bench's D: the trained pairs' D are the run's own, at its --error_rate")
     if a.dataset and a.condition not in ("task", "vlm", "empty"):
         p.error(f"--condition {a.condition} needs the toy bench's scenes; a --dataset bench has task, vlm, empty")
     if not 0 <= a.error_rate <= 1:
@@ -1098,6 +1134,8 @@ def main(argv=None):
             model, _ = models.load_checkpoint(a.checkpoint)
             if a.executor:
                 executor = models.load_checkpoint(a.executor)[0].eval()
+            if a.trained_pairs:
+                pairs, a.error_rate = trained_pairs(a.trained_pairs, a.n)
     except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
@@ -1194,7 +1232,8 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
     res, videos, pairs = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
                                   a.guidance, pick, verdicts=bool(a.videos))
     verdicts = res.pop("verdicts", None)
-    res["bench"] = a.dataset or ("crowded" if a.crowded else "toy")
+    res["bench"] = a.dataset or ("crowded" if a.crowded else
+                                 f"trained:{a.trained_pairs}" if a.trained_pairs else "toy")
     if a.real:
         name = a.model + (f" + {a.lora}" if a.lora else "") if a.model != "toy" else a.checkpoint or "shipped base"
         res.update(checkpoint=name, judge=a.judge, dataset=a.dataset)
@@ -1202,7 +1241,8 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
     else:
         res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
         title = (f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
-                 + ("bench=crowded " if a.crowded else ""))
+                 + ("bench=crowded " if a.crowded else "")
+                 + (f"bench=the pairs {a.trained_pairs} trained on " if a.trained_pairs else ""))
     print(format_table(res, title))
     if a.png:
         save_strip(videos, a.png)

@@ -86,6 +86,44 @@ def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, t
     assert "--videos is not read by --handoff" in exit_2(bench.main, ["--handoff", "task,vlm", "--videos", "x"], capsys)
 
 
+def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, capsys):
+    """bench.py --trained_pairs CKPT evaluates --checkpoint on the first --n of the pairs CKPT's run trained on
+    (train.toy_pairs at the run's --train_pairs, --seed and --error_rate, as its checkpoint records them), with their
+    own D; and refuses a checkpoint that trained on no pairs, more pairs than it had, and flags that would choose
+    another bench or other D."""
+    import dataclasses
+
+    import bench
+    import models
+    import train
+    import world
+    model = models.load_checkpoint(tiny_ckpt)[0]
+    ckpt = str(tmp_path / "executor_on.pt")
+    models.save_checkpoint(model, ckpt, {"stage": "distill", "variant": "on", "args": dataclasses.asdict(
+        train.Args(stage="distill", train_pairs=8, seed=3, error_rate=0.9))})
+    want = world.train_pairs(8, seed=4, error_rate=0.9)[:5]
+    assert [p.d_vlm for p in want] != [p.d_vlm for p in world.train_pairs(8, seed=4, error_rate=0.3)[:5]]
+    bench.main(["--checkpoint", tiny_ckpt, "--trained_pairs", ckpt, "--condition", "vlm", "--n", "5", "--steps", "2",
+                "--json", "--videos", str(tmp_path / "v")])
+    out = capsys.readouterr().out
+    res = json.loads(out.splitlines()[-1])
+    assert res["bench"] == f"trained:{ckpt}" and res["error_rate"] == 0.9 and res["n"] == 5
+    assert f"bench=the pairs {ckpt} trained on" in out
+    rows = [json.loads(line) for line in open(tmp_path / "v" / "videos.jsonl")]
+    assert [(r["task"], r["prompt"]) for r in rows] == [(p.task.text, p.d_vlm) for p in want]
+    assert "was not trained on the toy VLM's pairs (stage pretrain)" in exit_2(
+        bench.main, ["--trained_pairs", tiny_ckpt], capsys)
+    assert "--n 9 is more than the 8 pairs" in exit_2(bench.main, ["--trained_pairs", ckpt, "--n", "9"], capsys)
+    sft = str(tmp_path / "executor_sft.pt")
+    models.save_checkpoint(model, sft, {"stage": "distill", "variant": "sft", "args": dataclasses.asdict(train.Args())})
+    assert "is the +SFT baseline" in exit_2(bench.main, ["--trained_pairs", sft, "--n", "2"], capsys)
+    assert "not with --crowded" in exit_2(bench.main, ["--trained_pairs", ckpt, "--crowded"], capsys)
+    assert "the trained pairs' D are the run's own" in exit_2(
+        bench.main, ["--trained_pairs", ckpt, "--condition", "vlm", "--error_rate", "0.1"], capsys)
+    assert "--trained_pairs is not read by --gallery" in exit_2(
+        bench.main, ["--trained_pairs", ckpt, "--gallery", str(tmp_path / "g.png")], capsys)
+
+
 def test_bench_is_deterministic(tiny_ckpt):
     a = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
     b = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
@@ -645,6 +683,7 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
     monkeypatch.setattr(train, "load_base", stub("load_base"))                 # the real path's loader
     monkeypatch.setattr(train, "make_pick", stub("make_pick", "a PickScore"))   # --pick's loader
     monkeypatch.setattr(bench, "relate_probe", stub("relate_probe", contextlib.nullcontext()))
+    monkeypatch.setattr(bench, "trained_pairs", stub("trained_pairs", (["a trained pair"], 0.0)))   # its loader
     for name in ("evaluate", "handoff", "pointing", "rank_rdistill", "gallery", "compare_runs"):
         monkeypatch.setattr(bench, name, stub(name))
     value = {"checkpoint": ["x.pt"], "model": ["ltx2-tiny"], "model_path": ["/p"], "lora": ["l.pt"],
@@ -654,7 +693,8 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
              "error_rate": ["0.1"], "steps": ["3"], "guidance": ["2"], "png": [tmp_path / "p.png"],
              "gallery": [tmp_path / "g.png"],
              "executor": ["e.pt"], "json": [], "compare": ["A=r"], "handoff": ["task,vlm"], "rank_rdistill": [],
-             "group": ["4"], "pointing": [], "relate_probe": ["forced"], "crowded": []}
+             "group": ["4"], "pointing": [], "relate_probe": ["forced"], "crowded": [],
+             "trained_pairs": ["t.pt"]}
     own = [f"--{mode}", *value[mode]] if mode else []
 
     def called(argv):
