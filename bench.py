@@ -27,6 +27,8 @@ which a bystander moves the goal to the agent.
   python bench.py --condition vlm --guidance 3    # classifier-free guidance against the empty caption, w = 3
   python bench.py --crowded --condition vlm       # the crowded bench: 200 pairs on scenes of 5 sprites, where
                                                   # every scene a model trained on holds 2-4 (a test of transfer)
+  python bench.py --checkpoint R/executor_on.pt --trained_pairs R/executor_on.pt --n 32   # the first 32 pairs the
+                                                  # run trained on, not the bench: does it fit its own pairs?
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of train.py runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
