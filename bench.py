@@ -124,10 +124,16 @@ def trained_pairs(path: str, n: int) -> tuple[list, float]:
     meta = models.load_checkpoint(path)[1]
     run = meta.get("args", {})
     if meta.get("stage") not in ("distill", "rl") or run.get("model", "toy") != "toy" or run.get("dataset"):
-        on = f"--dataset {run['dataset']}" if run.get("dataset") else f"--model {run['model']}" if run.get(
-            "model", "toy") != "toy" else f"stage {meta.get('stage', 'not recorded')}"
+        on = f"stage {meta.get('stage', 'not recorded')}"
+        if run.get("model", "toy") != "toy":
+            on = f"--model {run['model']}"
+        if run.get("dataset"):
+            on = f"--dataset {run['dataset']}"
         raise ValueError(f"--trained_pairs {path!r} was not trained on the toy VLM's pairs ({on}): give a toy "
                          "Executor that train.py's distill or rl stage wrote")
+    if missing := [k for k in TRAINED_PAIRS_ARGS if k not in run]:
+        raise ValueError(f"--trained_pairs {path!r} does not record its run's --{', --'.join(missing)}, so its pairs "
+                         "cannot be made again")
     if meta.get("variant") == "sft":
         raise ValueError(f"--trained_pairs {path!r} is the +SFT baseline, trained on world videos labelled with "
                          "short tasks (world.sft_batch), not on the toy VLM's pairs")

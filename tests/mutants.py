@@ -688,6 +688,8 @@ MUTANTS = {
          "the trained pairs reported at the bench's error rate"),
         ('    if n > run["train_pairs"]:', '    if n > run["train_pairs"] + 1:', "one pair more than the run trained on"),
         ('    if meta.get("variant") == "sft":', '    if False:', "the +SFT baseline's checkpoint taken for a pairs run"),
+        ("    if missing := [k for k in TRAINED_PAIRS_ARGS if k not in run]:", "    if missing := []:",
+         "a checkpoint without the flags its pairs need taken, and failing with a traceback"),
         ('    if meta.get("stage") not in ("distill", "rl") or run.get("model", "toy") != "toy" or run.get("dataset"):',
          '    if run.get("model", "toy") != "toy" or run.get("dataset"):', "a pretrained base taken for a pairs run"),
         ("                pairs, a.error_rate = trained_pairs(a.trained_pairs, a.n)",

@@ -117,6 +117,10 @@ def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, cap
     sft = str(tmp_path / "executor_sft.pt")
     models.save_checkpoint(model, sft, {"stage": "distill", "variant": "sft", "args": dataclasses.asdict(train.Args())})
     assert "is the +SFT baseline" in exit_2(bench.main, ["--trained_pairs", sft, "--n", "2"], capsys)
+    old = str(tmp_path / "old.pt")      # a checkpoint from before a flag its pairs depend on
+    models.save_checkpoint(model, old, {"stage": "rl", "args": {"train_pairs": 8, "seed": 3, "error_rate": 0.9}})
+    assert "does not record its run's --train_crowded" in exit_2(bench.main, ["--trained_pairs", old, "--n", "2"],
+                                                                  capsys)
     assert "not with --crowded" in exit_2(bench.main, ["--trained_pairs", ckpt, "--crowded"], capsys)
     assert "the trained pairs' D are the run's own" in exit_2(
         bench.main, ["--trained_pairs", ckpt, "--condition", "vlm", "--error_rate", "0.1"], capsys)
