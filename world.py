@@ -394,7 +394,9 @@ def canonical_solution(sols: list[Plan]) -> Plan:
 
 
 def corrupt(scene: Scene, plan: Plan, rng: np.random.Generator) -> tuple[Plan, str]:
-    """A plausible VLM mistake: wrong direction, wrong distance, or wrong agent; always a valid, different plan."""
+    """A plausible VLM mistake: wrong direction, wrong distance, or wrong agent, as (a valid, different plan, its
+    kind). If 50 draws find none (not once in 12,000 corruptions of training pairs), the plan itself and kind "":
+    a right D, and counted as one."""
     n = len(scene.sprites)
     for _ in range(50):
         kind = rng.choice(["direction", "distance", "agent"])
