@@ -692,6 +692,9 @@ MUTANTS = {
          "a checkpoint without the flags its pairs need taken, and failing with a traceback"),
         ('    if meta.get("stage") not in ("distill", "rl") or run.get("model", "toy") != "toy" or run.get("dataset"):',
          '    if run.get("model", "toy") != "toy" or run.get("dataset"):', "a pretrained base taken for a pairs run"),
+        ('    if meta.get("stage") not in ("distill", "rl") or run.get("model", "toy") != "toy" or run.get("dataset"):',
+         '    if meta.get("stage") not in ("distill", "rl"):', "a real model's or a WorldTasks file's run taken for a toy "
+         "pairs run"),
         ("                pairs, a.error_rate = trained_pairs(a.trained_pairs, a.n)",
          "                pairs, _ = trained_pairs(a.trained_pairs, a.n)", "the trained pairs' error rate not reported"),
         ("    if a.trained_pairs and a.error_rate != DEFAULT_ERROR_RATE:", "    if False:",
