@@ -114,7 +114,8 @@ def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, cap
     assert "was not trained on the toy VLM's pairs (stage pretrain)" in exit_2(
         bench.main, ["--trained_pairs", tiny_ckpt], capsys)
     assert "--n 9 is more than the 8 pairs" in exit_2(bench.main, ["--trained_pairs", ckpt, "--n", "9"], capsys)
-    for extra, named in (({"model": "ltx2-tiny"}, "--model ltx2-tiny"), ({"dataset": "wt.jsonl"}, "--dataset wt.jsonl")):
+    for extra, named in (({"model": "ltx2-tiny"}, "--model ltx2-tiny"),
+                         ({"dataset": "wt.jsonl"}, "--dataset wt.jsonl")):
         real = str(tmp_path / "real.pt")     # an rl run on a real model's pairs, or on a WorldTasks file's
         models.save_checkpoint(model, real, {"stage": "rl", "args": {**dataclasses.asdict(train.Args()), **extra}})
         assert f"was not trained on the toy VLM's pairs ({named})" in exit_2(
