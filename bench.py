@@ -29,6 +29,8 @@ which a bystander moves the goal to the agent.
                                                   # every scene a model trained on holds 2-4 (a test of transfer)
   python bench.py --checkpoint R/executor_on.pt --trained_pairs R/executor_on.pt --n 32   # the first 32 pairs the
                                                   # run trained on, not the bench: does it fit its own pairs?
+  python bench.py --checkpoint R/executor_on.pt --trained_pairs R/executor_on.pt --n 32 --keyed_on moved
+                         # those pairs' sprites moved where each pair's plan P no longer solves T: does it still make P?
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of train.py runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
@@ -285,6 +287,110 @@ def fig7_lines(res: dict) -> list[str]:
         lines.append(f"Fig. 7, {key} score by {key} type (over {FIG7_SUPPORT:.0%} of the bench): {cells or 'none'}"
                      + (f"; at most {FIG7_SUPPORT:.0%}, not shown in the paper's figure: {small}" if small else ""))
     return lines
+
+
+KEYED_ON = ("moved", "retasked")   # --keyed_on: does a model key what it does on T's words or on the frame?
+
+
+def displacement(plan: world.Plan) -> np.ndarray:
+    """A plan's displacement of its mover, first frame to last: (vx k, vy k) pixels (for the camera, the view's)."""
+    return np.array([plan.vx * plan.k, plan.vy * plan.k])
+
+
+def shown_displacement(video: np.ndarray, scene: world.Scene, plan: world.Plan) -> np.ndarray | None:
+    """The displacement of `plan`'s mover that a video shows, read off its first and last frames
+    (world.read_sprites): that sprite's shift, or for the camera (mover -1) minus the sprites' mean shift, rounded.
+    None where it cannot be read (the sprite, or every sprite, not found in one of the two frames)."""
+    first, last = ({s.colour: np.array([s.x, s.y]) for s in world.read_sprites(f)} for f in (video[0], video[-1]))
+    if plan.mover == -1:
+        shifts = [last[c] - first[c] for c in first if c in last]
+        return -np.round(np.mean(shifts, 0)) if shifts else None
+    c = scene.sprites[plan.mover].colour
+    return last[c] - first[c] if c in first and c in last else None
+
+
+def solves(scene: world.Scene, plan: world.Plan, task: world.Task) -> bool:
+    """Whether the task judge passes `plan`'s simulated video on `scene` for `task`."""
+    return reward.judge_all(world.render(scene, world.simulate(scene, plan)), task.text)["task"].yes is True
+
+
+def moved_plan(pair, scene: world.Scene) -> world.Plan | None:
+    """--keyed_on moved's rule for a new place of a pair's sprites (scene S'; the pair: scene S, task T, T's correct
+    plan P): T's correct plan on S', P', where T is feasible on S', P is valid there but does not solve T, and P'
+    moves the agent by more than 1 px otherwise than P; else None."""
+    sols = world.solutions(scene, pair.task)
+    if not sols or not world.plan_is_valid(scene, pair.plan_oracle):
+        return None
+    q = world.canonical_solution(sols)
+    if (np.abs(displacement(q) - displacement(pair.plan_oracle)).max() <= 1
+            or solves(scene, pair.plan_oracle, pair.task)):
+        return None
+    return q
+
+
+def moved_pairs(pairs: list, seed: int = 0, tries: int = 20000) -> list:
+    """--keyed_on moved: for each pair, the same sprites at new places (drawn as world.random_scene places them)
+    until moved_plan finds one; the moved pair's D is that scene's error-free description of its plan P'.
+    -> [(pair, moved pair)], leaving out the pairs for which `tries` draws find none (an edge task whose P already
+    goes as far as a plan can)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for p in pairs:
+        for _ in range(tries):
+            xy = rng.integers(1, world.W - 1, size=(len(p.scene.sprites), 2))
+            if not world.spaced(xy):
+                continue
+            s2 = world.Scene([world.Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in
+                              zip(p.scene.sprites, xy)], p.scene.background)
+            if q := moved_plan(p, s2):
+                d = world.describe(s2, q)
+                out.append((p, world.Pair(s2, p.task, d, d, q, q, "", world.render(s2, world.simulate(s2, q))[0])))
+                break
+    return out
+
+
+def other_tasks(pair) -> list:
+    """--keyed_on retasked's choices for a pair (scene S, task T, T's correct plan P): [(T', T''s correct plan)] for
+    every other task T' feasible on S (world.candidate_tasks) whose correct plan does not solve T and which P does
+    not solve: doing one of the two tasks never does the other."""
+    out = []
+    for t in world.candidate_tasks(pair.scene):
+        sols = world.solutions(pair.scene, t) if t.text != pair.task.text else []
+        if not sols:
+            continue
+        q = world.canonical_solution(sols)
+        if not solves(pair.scene, q, pair.task) and not solves(pair.scene, pair.plan_oracle, t):
+            out.append((t, q))
+    return out
+
+
+def retasked_pairs(pairs: list, seed: int = 0) -> list:
+    """--keyed_on retasked: for each pair, the same first frame with one of other_tasks drawn at random; its D is
+    the error-free description of that task's plan. -> [(pair, retasked pair)], leaving out the pairs whose scene has
+    no other task."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for p in pairs:
+        if opts := other_tasks(p):
+            t, q = opts[rng.integers(len(opts))]
+            d = world.describe(p.scene, q)
+            out.append((p, world.Pair(p.scene, t, d, d, q, q, "", p.frame0)))
+    return out
+
+
+def keyed_scores(which: str, videos: np.ndarray, made: list) -> dict:
+    """What videos made for --keyed_on's pairs (`made`: [(original pair, new pair)]) show of what the model does on
+    the originals. moved: the shares of videos that make the original plan P's displacement (trained_motion) and the
+    new scene's plan P''s (needed_motion), within 1 px, and whose displacement cannot be read (unread); retasked: the
+    share judged to solve the original task T (trained_task). The new pairs' own scores are bench.evaluate's."""
+    if which == "retasked":
+        return {"trained_task": float(np.mean([reward.judge_all(v, p.task.text)["task"].yes is True
+                                               for v, (p, _) in zip(videos, made)]))}
+    shown = [shown_displacement(v, q.scene, p.plan_oracle) for v, (p, q) in zip(videos, made)]
+    near = lambda d, plan: d is not None and np.abs(d - displacement(plan)).max() <= 1   # noqa: E731
+    return {"trained_motion": float(np.mean([near(d, p.plan_oracle) for d, (p, _) in zip(shown, made)])),
+            "needed_motion": float(np.mean([near(d, q.plan_oracle) for d, (_, q) in zip(shown, made)])),
+            "unread": float(np.mean([d is None for d in shown]))}
 
 
 def evaluate(model, condition: str, n: int = 200, seed: int = 0, error_rate: float = DEFAULT_ERROR_RATE,
@@ -1017,14 +1123,20 @@ def main(argv=None):
     p.add_argument("--relate_probe", choices=RELATE_PROBES, default=None,
                    help="a --relate base, evaluated (or, forced, --pointing) with Relate altered: heads 0 and 1 forced "
                         "onto each pair's true agent and target, or Relate's channels zeroed (bench.relate_probe)")
+    p.add_argument("--keyed_on", choices=KEYED_ON, default=None,
+                   help="what a model keys its motion on: evaluate it on each pair (of --trained_pairs, or the bench) "
+                        "moved (the same sprites elsewhere, where the pair's plan no longer solves T) or retasked "
+                        "(the same first frame, another task), and say how often it still makes the pair's own "
+                        "motion or solves its task (bench.moved_pairs, retasked_pairs, keyed_scores)")
     a = p.parse_args(argv)
     mode = next((m for m in DIAGNOSTIC_READS if getattr(a, m) not in (None, False)), None)
     ignored = [k for k, v in vars(a).items() if v != p.get_default(k) and k not in (mode, "threads")   # refused
                and (k == "group" if mode is None else k not in DIAGNOSTIC_READS[mode])]
     a.real = a.model != "toy" or a.judge != "toy" or bool(a.dataset)     # the real path: train.py's loaders
-    if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.gallery):
-        p.error("--compare, --handoff, --rank_rdistill, --pointing, --relate_probe and --gallery are toy diagnostics: "
-                "not with --model, --judge or --dataset")
+    if a.real and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.gallery
+                   or a.keyed_on):
+        p.error("--compare, --handoff, --rank_rdistill, --pointing, --relate_probe, --keyed_on and --gallery are toy "
+                "diagnostics: not with --model, --judge or --dataset")
     if a.gallery and (a.compare or a.handoff is not None or a.rank_rdistill or a.pointing or a.relate_probe or a.png):
         p.error("--gallery draws videos of the bench: not with --compare, --handoff, --rank_rdistill, --pointing, "
                 "--relate_probe or --png")
@@ -1078,6 +1190,8 @@ def main(argv=None):
     if a.trained_pairs and (a.real or a.crowded):
         p.error("--trained_pairs evaluates a toy model on a toy run's training pairs instead of the bench: not with "
                 "--crowded, --dataset, --model or --judge")
+    if a.keyed_on and a.error_rate != DEFAULT_ERROR_RATE:
+        p.error("--error_rate sets the bench's D: --keyed_on's pairs have the error-free D of their own plans")
     if a.trained_pairs and a.error_rate != DEFAULT_ERROR_RATE:
         p.error("--error_rate sets the bench's D: the trained pairs' D are the run's own, at its --error_rate")
     if a.dataset and a.condition not in ("task", "vlm", "empty"):
@@ -1160,6 +1274,18 @@ def main(argv=None):
         return
     if a.crowded:
         pairs = world.crowded_pairs(a.error_rate)
+    if a.keyed_on:          # the pairs moved or retasked; each new pair evaluated, its original kept beside it
+        pairs = (pairs or world.bench_pairs(a.error_rate))[:a.n]
+        a.made = (moved_pairs if a.keyed_on == "moved" else retasked_pairs)(pairs)
+        kept = {id(p) for p, _ in a.made}
+        a.left_out = [p.task.text for p in pairs if id(p) not in kept]
+        print(f"--keyed_on {a.keyed_on}: {len(a.made)} of {len(pairs)} pairs" +
+              (f"; none for {', '.join(a.left_out)}" if a.left_out else ""))
+        if not a.made:
+            print(f"error: --keyed_on {a.keyed_on}: none of the {len(pairs)} pairs can be {a.keyed_on}",
+                  file=sys.stderr)
+            sys.exit(2)
+        pairs = [q for _, q in a.made]
     if a.real:
         with contextlib.ExitStack() as size:
             if a.height:       # Table 3's evaluation resolution
@@ -1240,6 +1366,8 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
     res, videos, pairs = evaluate(model, a.condition, a.n, a.seed, a.error_rate, a.steps, judge, a.batch, pairs,
                                   a.guidance, pick, verdicts=bool(a.videos))
     verdicts = res.pop("verdicts", None)
+    if a.keyed_on:
+        res.update(keyed_on=a.keyed_on, left_out=a.left_out, **keyed_scores(a.keyed_on, videos, a.made))
     res["bench"] = a.dataset or ("crowded" if a.crowded else
                                  f"trained:{a.trained_pairs}" if a.trained_pairs else "toy")
     if a.real:
@@ -1250,8 +1378,14 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
         res.update(checkpoint=a.checkpoint or "shipped base", relate_probe=a.relate_probe)
         title = (f"checkpoint={res['checkpoint']} " + (f"relate_probe={a.relate_probe} " if a.relate_probe else "")
                  + ("bench=crowded " if a.crowded else "")
-                 + (f"bench=the pairs {a.trained_pairs} trained on " if a.trained_pairs else ""))
+                 + (f"bench=the pairs {a.trained_pairs} trained on " if a.trained_pairs else "")
+                 + (f"keyed_on={a.keyed_on} " if a.keyed_on else ""))
     print(format_table(res, title))
+    if a.keyed_on == "moved":
+        print(f"on the moved scenes: the pair's own motion P in {res['trained_motion']:.3f} of the videos, the motion "
+              f"T needs there P' in {res['needed_motion']:.3f}, unread {res['unread']:.3f}")
+    elif a.keyed_on == "retasked":
+        print(f"given the new task T': the pair's own task T solved in {res['trained_task']:.3f} of the videos")
     if a.png:
         save_strip(videos, a.png)
         print(f"wrote {a.png}")

@@ -461,11 +461,17 @@ def random_scene(rng: np.random.Generator, sprites: tuple[int, int] = SPRITES) -
     colours = rng.choice(list(COLOURS), n, replace=False)
     while True:
         xy = rng.integers(1, W - 1, size=(n, 2))
-        gaps = np.abs(xy[:, None] - xy[None]).max(-1) + np.eye(n, dtype=int) * 99
-        if gaps.min() >= 4:
+        if spaced(xy):
             break
     return Scene([Sprite(str(c), str(rng.choice(list(SHAPES))), int(x), int(y)) for c, (x, y) in zip(colours, xy)],
                  background=int(rng.integers(0, 41)))
+
+
+def spaced(xy: np.ndarray) -> bool:
+    """random_scene's rule for sprite centres xy (n, 2): every two at least 4 px apart (Chebyshev), one pixel between
+    their 3x3 boxes."""
+    n = len(xy)
+    return bool((np.abs(xy[:, None] - xy[None]).max(-1) + np.eye(n, dtype=int) * 99).min() >= 4)
 
 
 def scene_key(scene: Scene) -> tuple:

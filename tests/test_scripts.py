@@ -134,6 +134,98 @@ def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, cap
         bench.main, ["--trained_pairs", ckpt, "--gallery", str(tmp_path / "g.png")], capsys)
 
 
+def test_keyed_on_moves_or_retasks_each_pair_by_its_rules_and_reads_the_motion(tiny_ckpt, tmp_path, capsys,
+                                                                                monkeypatch):
+    """bench.py --keyed_on: moved_plan takes a new place of a pair's sprites where T is feasible, its plan P is valid
+    but no longer solves T and T's new plan P' moves otherwise, and moved_pairs draws one; other_tasks gives the same
+    frame each other task T' where neither plan solves the other's task, and retasked_pairs draws one; each rule
+    restated here on draws where each of its reasons occurs. shown_displacement reads a simulated video's motion
+    back exactly (camera too), and None where the mover is gone; keyed_scores on simulated executions; the command
+    line, and its refusals."""
+    import bench
+    import reward
+    import world
+    pairs = world.bench_pairs(0.0)[:6]
+    simulated = lambda scene, plan: world.render(scene, world.simulate(scene, plan))    # noqa: E731
+    solves = lambda video, task: reward.judge_all(video, task.text)["task"].yes is True  # noqa: E731
+    for p in world.bench_pairs(0.0)[:40]:   # the reading, on the simulator's videos (the camera's among them)
+        assert np.array_equal(bench.shown_displacement(simulated(p.scene, p.plan_oracle), p.scene, p.plan_oracle),
+                              bench.displacement(p.plan_oracle))
+    assert any(p.plan_oracle.mover == -1 for p in world.bench_pairs(0.0)[:40])
+    gone = simulated(pairs[0].scene, pairs[0].plan_oracle).copy()
+    gone[-1] = gone[-1, 0, 0]                                    # the last frame all background: nothing to read
+    assert bench.shown_displacement(gone, pairs[0].scene, pairs[0].plan_oracle) is None
+    p = next(p for p in world.bench_pairs(0.0) if p.task.kind == "move_to")
+    rng, reasons = np.random.default_rng(1), set()
+    for _ in range(1000):   # moved_plan's rule, restated, on new places of the first move_to pair's sprites
+        xy = rng.integers(1, world.W - 1, size=(len(p.scene.sprites), 2))
+        scene = world.Scene([world.Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in
+                             zip(p.scene.sprites, xy)], p.scene.background)
+        sols = world.solutions(scene, p.task)
+        why = ("infeasible" if not sols else "P invalid" if not world.plan_is_valid(scene, p.plan_oracle) else
+               "P' is P" if np.abs(bench.displacement(world.canonical_solution(sols))
+                                   - bench.displacement(p.plan_oracle)).max() <= 1 else
+               "P solves T" if solves(simulated(scene, p.plan_oracle), p.task) else "")
+        reasons.add(why)
+        q = bench.moved_plan(p, scene)
+        assert q == (None if why else world.canonical_solution(sols)), why
+    assert reasons == {"infeasible", "P invalid", "P' is P", "P solves T", ""}
+    moved = bench.moved_pairs(pairs, tries=3000)
+    assert 3 <= len(moved) <= len(pairs)
+    for p, q in moved:
+        assert q.task == p.task and q.scene.names() == p.scene.names() and world.spaced(
+            np.array([[s.x, s.y] for s in q.scene.sprites]))
+        assert world.scene_key(q.scene) != world.scene_key(p.scene) and q.d_vlm == world.describe(q.scene,
+                                                                                                  q.plan_oracle)
+        assert np.array_equal(q.frame0, simulated(q.scene, q.plan_oracle)[0])
+        assert world.plan_is_valid(q.scene, p.plan_oracle) and not solves(simulated(q.scene, p.plan_oracle), p.task)
+        assert solves(simulated(q.scene, q.plan_oracle), p.task)
+        assert np.abs(bench.displacement(q.plan_oracle) - bench.displacement(p.plan_oracle)).max() > 1
+    for which, own, new in (("trained_motion", 1.0, 0.0), ("needed_motion", 0.0, 1.0)):
+        videos = [simulated(q.scene, p.plan_oracle) for p, q in moved]          # P done on the moved scenes
+        assert bench.keyed_scores("moved", np.stack(videos), moved)[which] == own
+        videos = [simulated(q.scene, q.plan_oracle) for p, q in moved]          # P', what T needs there
+        assert bench.keyed_scores("moved", np.stack(videos), moved)[which] == new
+    reasons = set()
+    for p in world.bench_pairs(0.0)[:12]:   # other_tasks' rule, restated, on every task of the first 12 scenes
+        chosen = dict((t.text, q) for t, q in bench.other_tasks(p))
+        for t in world.candidate_tasks(p.scene):
+            sols = world.solutions(p.scene, t)
+            why = ("T" if t.text == p.task.text else "infeasible" if not sols else
+                   "P' solves T" if solves(simulated(p.scene, world.canonical_solution(sols)), p.task) else
+                   "P solves T'" if solves(simulated(p.scene, p.plan_oracle), t) else "")
+            reasons.add(why)
+            assert chosen.get(t.text) == (None if why else world.canonical_solution(sols)), why
+    assert reasons == {"T", "infeasible", "P' solves T", "P solves T'", ""}
+    retasked = bench.retasked_pairs(pairs)
+    assert len(retasked) == len(pairs)
+    for p, q in retasked:
+        assert q.scene is p.scene and q.frame0 is p.frame0 and q.task.text != p.task.text
+        assert not solves(simulated(p.scene, q.plan_oracle), p.task) and not solves(simulated(p.scene, p.plan_oracle),
+                                                                                  q.task)
+        assert solves(simulated(p.scene, q.plan_oracle), q.task)
+    done = lambda plan_of: np.stack([simulated(p.scene, plan_of(p, q)) for p, q in retasked])    # noqa: E731
+    assert bench.keyed_scores("retasked", done(lambda p, q: p.plan_oracle), retasked)["trained_task"] == 1.0
+    assert bench.keyed_scores("retasked", done(lambda p, q: q.plan_oracle), retasked)["trained_task"] == 0.0
+    bench.main(["--checkpoint", tiny_ckpt, "--keyed_on", "retasked", "--n", "3", "--steps", "2", "--json",
+                "--videos", str(tmp_path / "v")])
+    out = capsys.readouterr().out
+    res = json.loads(out.splitlines()[-1])
+    assert res["keyed_on"] == "retasked" and res["n"] == 3 and 0 <= res["trained_task"] <= 1
+    assert "--keyed_on retasked: 3 of 3 pairs" in out and "the pair's own task T solved in" in out
+    rows = [json.loads(line) for line in open(tmp_path / "v" / "videos.jsonl")]
+    assert [r["task"] for r in rows] == [q.task.text for _, q in bench.retasked_pairs(world.bench_pairs(0.3)[:3])]
+    assert "--keyed_on is not read by --handoff" in exit_2(bench.main, ["--keyed_on", "moved", "--handoff",
+                                                                        "task,vlm"], capsys)
+    assert "--keyed_on and --gallery are toy diagnostics" in exit_2(
+        bench.main, ["--keyed_on", "moved", "--model", "ltx2-tiny"], capsys)
+    assert "--keyed_on's pairs have the error-free D" in exit_2(
+        bench.main, ["--keyed_on", "moved", "--condition", "vlm", "--error_rate", "0.1"], capsys)
+    monkeypatch.setattr(bench, "moved_pairs", lambda pairs: [])      # no pair with a scene to move to
+    assert "--keyed_on moved: none of the 2 pairs can be moved" in exit_2(
+        bench.main, ["--checkpoint", tiny_ckpt, "--keyed_on", "moved", "--n", "2"], capsys)
+
+
 def test_bench_is_deterministic(tiny_ckpt):
     a = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
     b = run("bench.py", "--checkpoint", tiny_ckpt, "--n", "3", "--steps", "2", "--json", "--seed", "1")
