@@ -31,6 +31,8 @@ which a bystander moves the goal to the agent.
                                                   # run trained on, not the bench: does it fit its own pairs?
   python bench.py --checkpoint R/executor_on.pt --trained_pairs R/executor_on.pt --n 32 --keyed_on moved
                          # those pairs' sprites moved where each pair's plan P no longer solves T: does it still make P?
+  python bench.py --checkpoint R/executor_on.pt --trained_pairs R/executor_on.pt --n 512 --keyed_on arranged
+                         # a --train_arrangements run's tasks on 6 new places each: has it learned to read the frame?
   python bench.py --compare "WMSD=runs" "no anchor=runs/b" --png cmp.png   # curves + table of train.py runs
   python bench.py --compare "WMSD=runs/s0,runs/s1" --png cmp.png        # seeds of one setting: mean, min-max band
   python bench.py --handoff task,vlm --png h.png   # prompt A for the first k Euler steps, then B: where is it decided?
@@ -114,14 +116,16 @@ JOINT = {"solved": ("task", "consistency", "solved by a plausible video (task an
 
 
 TRAINED_PAIRS_ARGS = ("train_pairs", "seed", "error_rate", "train_crowded")   # what train.toy_pairs reads
+LATER_PAIRS_ARGS = {"train_arrangements": 1}      # what it reads since a later flag, and what older runs did
 
 
-def trained_pairs(path: str, n: int) -> tuple[list, float]:
+def trained_pairs(path: str, n: int) -> tuple[list, float, dict]:
     """The first n of the pairs a toy train.py run trained on (bench.py --trained_pairs), made again from the run's
-    flags that its checkpoint records: train.toy_pairs at the run's --train_pairs, --seed, --error_rate and
-    --train_crowded. Evaluated instead of the bench, they ask whether a model fits the pairs it trained on, not only
-    the held-out ones. Returns (pairs, the run's error rate). A ValueError for a checkpoint that trained on none of
-    them, or on fewer than n."""
+    flags that its checkpoint records: train.toy_pairs at the run's --train_pairs, --seed, --error_rate,
+    --train_crowded and --train_arrangements (1 where it records none). Evaluated instead of the bench, they ask
+    whether a model fits the pairs it trained on, not only the held-out ones. Returns (pairs, the run's error rate,
+    the run: its arrangements, seed and every scene it trained on, which --keyed_on arranged reads). A ValueError
+    for a checkpoint that trained on none of them, or on fewer than n."""
     import train     # train imports this module
     meta = models.load_checkpoint(path)[1]
     run = meta.get("args", {})
@@ -141,8 +145,11 @@ def trained_pairs(path: str, n: int) -> tuple[list, float]:
                          "short tasks (world.sft_batch), not on the toy VLM's pairs")
     if n > run["train_pairs"]:
         raise ValueError(f"--n {n} is more than the {run['train_pairs']} pairs {path!r} trained on")
-    pairs = train.toy_pairs(train.Args(**{k: run[k] for k in TRAINED_PAIRS_ARGS}))
-    return pairs[:n], run["error_rate"]
+    made = {k: run.get(k, v) for k, v in LATER_PAIRS_ARGS.items()} | {k: run[k] for k in TRAINED_PAIRS_ARGS}
+    pairs = train.toy_pairs(train.Args(**made))
+    scenes = world.bench_scene_keys(run["train_crowded"]) | {world.scene_key(p.scene) for p in pairs}
+    return pairs[:n], run["error_rate"], {"arrangements": made["train_arrangements"], "seed": run["seed"],
+                                          "scenes": scenes}
 
 
 def score_table(judgments: list[dict]) -> dict:
@@ -289,7 +296,8 @@ def fig7_lines(res: dict) -> list[str]:
     return lines
 
 
-KEYED_ON = ("moved", "retasked")   # --keyed_on: does a model key what it does on T's words or on the frame?
+KEYED_ON = ("moved", "retasked", "arranged")   # --keyed_on: does a model key what it does on T's words or the frame?
+ARRANGED = 6        # --keyed_on arranged: new places of each task's sprites
 
 
 def displacement(plan: world.Plan) -> np.ndarray:
@@ -378,11 +386,24 @@ def retasked_pairs(pairs: list, seed: int = 0) -> list:
     return out
 
 
+def arranged_pairs(pairs: list, arrangements: int, seed: int, avoid: frozenset) -> list:
+    """--keyed_on arranged: each task of the pairs (the first of each run of `arrangements` pairs: a
+    --train_arrangements run's pairs come as each task on its places in turn) on ARRANGED new places of its sprites
+    where it is feasible (world.arrangements, none a scene in `avoid`: the bench's and the run's own), drawn from
+    (seed, 8). Does what a model does for a task carry over to other places of the same sprites, where T's words are
+    the same and only the frame tells the motion? -> [(the task's pair, a new pair)]."""
+    rng, avoid = np.random.default_rng([seed, 8]), set(avoid)
+    return [(p, q) for p in pairs[::arrangements] for q in world.arrangements(p, ARRANGED, rng, avoid)]
+
+
 def keyed_scores(which: str, videos: np.ndarray, made: list) -> dict:
-    """What videos made for --keyed_on's pairs (`made`: [(original pair, new pair)]) show of what the model does on
-    the originals. moved: the shares of videos that make the original plan P's displacement (trained_motion) and the
-    new scene's plan P''s (needed_motion), within 1 px, and whose displacement cannot be read (unread); retasked: the
-    share judged to solve the original task T (trained_task). The new pairs' own scores are bench.evaluate's."""
+    """What videos made for --keyed_on's pairs (`made`: [(original pair, new pair)]) show of what the model does on the
+    originals. arranged: only how many tasks were arranged anew. moved: the shares of videos that make the original plan
+    P's displacement (trained_motion) and the new scene's plan P''s (needed_motion), within 1 px, and whose displacement
+    cannot be read (unread); retasked: the share judged to solve the original task T (trained_task). The new pairs' own
+    scores are bench.evaluate's."""
+    if which == "arranged":     # the new pairs' own scores are all there is
+        return {"tasks": len({id(p) for p, _ in made})}
     if which == "retasked":
         return {"trained_task": float(np.mean([reward.judge_all(v, p.task.text)["task"].yes is True
                                                for v, (p, _) in zip(videos, made)]))}
@@ -1127,7 +1148,9 @@ def main(argv=None):
                    help="what a model keys its motion on: evaluate it on each pair (of --trained_pairs, or the bench) "
                         "moved (the same sprites elsewhere, where the pair's plan no longer solves T) or retasked "
                         "(the same first frame, another task), and say how often it still makes the pair's own "
-                        "motion or solves its task (bench.moved_pairs, retasked_pairs, keyed_scores)")
+                        "motion or solves its task (bench.moved_pairs, retasked_pairs, keyed_scores); or arranged: "
+                        "each task on 6 new places of its sprites where it is feasible, and how often it is solved "
+                        "there (bench.arranged_pairs; a --train_arrangements run's tasks, each once)")
     a = p.parse_args(argv)
     mode = next((m for m in DIAGNOSTIC_READS if getattr(a, m) not in (None, False)), None)
     ignored = [k for k, v in vars(a).items() if v != p.get_default(k) and k not in (mode, "threads")   # refused
@@ -1155,7 +1178,7 @@ def main(argv=None):
         p.error(f"--gallery draws at most {GALLERY_MAX} pairs, got --n {a.n}")
     if a.n < 1:
         p.error(f"--n must be >= 1, got {a.n}")
-    if a.n > 200 and not a.dataset:
+    if a.n > 200 and not a.dataset and not a.trained_pairs:     # a run's pairs: as many as it trained on
         p.error(f"--n must lie in 1..200 (the toy bench), got {a.n}")
     if a.batch < 1:
         p.error(f"--batch must be >= 1, got {a.batch}")
@@ -1257,7 +1280,7 @@ def main(argv=None):
             if a.executor:
                 executor = models.load_checkpoint(a.executor)[0].eval()
             if a.trained_pairs:
-                pairs, a.error_rate = trained_pairs(a.trained_pairs, a.n)
+                pairs, a.error_rate, a.run = trained_pairs(a.trained_pairs, a.n)
     except (FileNotFoundError, ValueError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
@@ -1276,11 +1299,23 @@ def main(argv=None):
         pairs = world.crowded_pairs(a.error_rate)
     if a.keyed_on:          # the pairs moved or retasked; each new pair evaluated, its original kept beside it
         pairs = (pairs or world.bench_pairs(a.error_rate))[:a.n]
-        a.made = (moved_pairs if a.keyed_on == "moved" else retasked_pairs)(pairs)
-        kept = {id(p) for p, _ in a.made}
-        a.left_out = [p.task.text for p in pairs if id(p) not in kept]
-        print(f"--keyed_on {a.keyed_on}: {len(a.made)} of {len(pairs)} pairs" +
-              (f"; none for {', '.join(a.left_out)}" if a.left_out else ""))
+        if a.keyed_on == "arranged":    # the bench's tasks on one scene each, drawn from seed 0; a run's from its own
+            run = getattr(a, "run", None) or {"arrangements": 1, "seed": 0,
+                                               "scenes": world.bench_scene_keys(a.crowded)}
+            try:
+                a.made = arranged_pairs(pairs, run["arrangements"], run["seed"], run["scenes"])
+            except ValueError as e:
+                print(f"error: --keyed_on arranged: {e}", file=sys.stderr)
+                sys.exit(2)
+            a.left_out, a.n = [], len(a.made)        # every new place evaluated
+            print(f"--keyed_on arranged: {ARRANGED} new places of each of the {len(a.made) // ARRANGED} tasks of "
+                  f"the {len(pairs)} pairs")
+        else:
+            a.made = (moved_pairs if a.keyed_on == "moved" else retasked_pairs)(pairs)
+            kept = {id(p) for p, _ in a.made}
+            a.left_out = [p.task.text for p in pairs if id(p) not in kept]
+            print(f"--keyed_on {a.keyed_on}: {len(a.made)} of {len(pairs)} pairs" +
+                  (f"; none for {', '.join(a.left_out)}" if a.left_out else ""))
         if not a.made:
             print(f"error: --keyed_on {a.keyed_on}: none of the {len(pairs)} pairs can be {a.keyed_on}",
                   file=sys.stderr)
@@ -1386,6 +1421,8 @@ def _run_one(a, model, judge=None, pairs=None, pick=None) -> None:
               f"T needs there P' in {res['needed_motion']:.3f}, unread {res['unread']:.3f}")
     elif a.keyed_on == "retasked":
         print(f"given the new task T': the pair's own task T solved in {res['trained_task']:.3f} of the videos")
+    elif a.keyed_on == "arranged":
+        print(f"on {ARRANGED} new places of each of {res['tasks']} tasks' sprites: task {res['task']:.3f}")
     if a.png:
         save_strip(videos, a.png)
         print(f"wrote {a.png}")

@@ -178,6 +178,10 @@ class Args:
     """the toy VLM's share of wrong descriptions D (bench.DEFAULT_ERROR_RATE)"""
     train_pairs: int = 512
     """(image, T, D) training pairs drawn from the toy VLM, on scenes disjoint from the bench"""
+    train_arrangements: int = 1
+    """M > 1: the training pairs are --train_pairs / M tasks, each on M places of its scene's sprites (its own scene
+    and M - 1 others where T is feasible, world.arrangements), D each place's error-free description (--error_rate
+    0): T's words alone no longer tell the motion, the frame must (docs/given-t.md). 1: each task on one scene"""
     train_crowded: bool = False
     """train on scenes of 5 sprites (world.CROWDED_SPRITES) disjoint from the crowded bench's (bench.py --crowded),
     not on the bench's 2-4: the toy's Table 2, where SFT trains on the target domain's data and WMSD does not
@@ -353,8 +357,9 @@ READ_BY = {
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
     **dict.fromkeys(("variant", "batch", "sft_dataset"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
-                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs", "train_crowded",
-                     "eval_crowded", "eval_every", "eval_n", "eval_cache", "state_window", "distill_motion_weight",
+                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
+                     "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
+                     "state_window", "distill_motion_weight",
                      "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width",
                      "model_path", "offload_judge", "grad_checkpoint", "offload_text"),
                     ("distill", "rl")),
@@ -426,7 +431,8 @@ def unread_flags(args: Args) -> list:
         *((name, "the toy's video loss (--model toy)", f"--model {args.model}", args.model != "toy")
           for name in ("motion_weight", "loss_power")),
         *((name, "--model toy (the toy VLM's pairs) in the distill stage", f"--model {args.model}",
-           args.stage == "distill" and args.model != "toy") for name in ("train_pairs", "train_crowded")),
+           args.stage == "distill" and args.model != "toy")
+          for name in ("train_pairs", "train_arrangements", "train_crowded")),
         *((name, "RL rounds (--executor_update wmsd, or --alternate N's Demonstrator rounds)",
            "--executor_update off without --alternate", not judged)
           for name in ("trainer", *TRAINER_READS, "sampler", "lambda_task", "lambda_cons", "task_reward", "adv_agg",
@@ -487,8 +493,8 @@ def parse_args(argv=None) -> Args:
     if args.eval_every == 0:
         args.eval_every = 25 if args.stage == "rl" else 10
     for name in ("steps", "batch", "log_every", "threads", "width", "pretrain_steps", "pretrain_batch", "lora_rank",
-                 "sample_steps", "train_pairs", "eval_every", "eval_n", "tasks_per_step", "inner_epochs",
-                 "awm_timesteps", "save_every", "executor_ema_every"):
+                 "sample_steps", "train_pairs", "train_arrangements", "eval_every", "eval_n", "tasks_per_step",
+                 "inner_epochs", "awm_timesteps", "save_every", "executor_ema_every"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.train_steps < 0:
@@ -534,6 +540,11 @@ def parse_args(argv=None) -> Args:
         p.error("--noise_level must be > 0 for SDE rollouts")
     if not 0 <= args.error_rate <= 1:
         p.error("--error_rate must lie in [0, 1]")
+    if args.train_pairs % args.train_arrangements:
+        p.error(f"--train_pairs {args.train_pairs} is not a whole number of tasks on --train_arrangements "
+                f"{args.train_arrangements} places each")
+    if args.train_arrangements > 1 and args.error_rate:
+        p.error("--train_arrangements > 1 gives each place the error-free D of T's plan there: give --error_rate 0")
     if args.model in REAL_MODELS and not args.model_path:
         p.error(f"--model {args.model} needs --model_path (a local diffusers {REAL_MODELS[args.model].__name__} "
                 f"directory; nothing is downloaded)")
@@ -997,7 +1008,9 @@ def distill_stage(args: Args) -> dict:
     else:
         pairs = toy_pairs(args)
         print(f"{len(pairs)} training pairs from the toy VLM (error rate {args.error_rate}"
-              f"{', crowded scenes' if args.train_crowded else ''}) in {time.time() - t0:.0f} s")
+              f"{', crowded scenes' if args.train_crowded else ''}"
+              f"{f', {args.train_arrangements} places of each task' if args.train_arrangements > 1 else ''}) "
+              f"in {time.time() - t0:.0f} s")
         base = None
     os.makedirs(args.run_dir, exist_ok=True)     # after the inputs are read: a bad one leaves no empty run dir
     net = base if base is not None else models.load_checkpoint(args.init or None)[0]
@@ -1589,9 +1602,17 @@ def load_pairs(args: Args, model) -> list:
 
 def toy_pairs(args: Args) -> list:
     """The toy VLM's training pairs: --train_pairs of them, on scenes disjoint from the bench (--train_crowded: on
-    5-sprite scenes disjoint from the crowded bench)."""
-    return world.train_pairs(args.train_pairs, seed=args.seed + 1, error_rate=args.error_rate,
-                             crowded=args.train_crowded)
+    5-sprite scenes disjoint from the crowded bench). With --train_arrangements M > 1, the first --train_pairs / M
+    of them, each followed by M - 1 new places of its sprites (world.arrangements, drawn from the run's seed; no
+    place twice, none a bench scene or another task's scene)."""
+    m = args.train_arrangements
+    pairs = world.train_pairs(args.train_pairs // m, seed=args.seed + 1, error_rate=args.error_rate,
+                              crowded=args.train_crowded)
+    if m == 1:
+        return pairs
+    rng = np.random.default_rng([args.seed, 7])
+    avoid = set(world.bench_scene_keys(args.train_crowded)) | {world.scene_key(p.scene) for p in pairs}
+    return [q for p in pairs for q in (p, *world.arrangements(p, m - 1, rng, avoid))]
 
 
 def dataset_pairs(path: str, model, need: int, flag: str, size: tuple | None = None) -> list:

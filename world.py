@@ -553,6 +553,32 @@ def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> 
                       sprites=CROWDED_SPRITES if crowded else SPRITES)
 
 
+def arrangements(pair: Pair, m: int, rng: np.random.Generator, avoid: set, tries: int = 20000) -> list[Pair]:
+    """m new places of a pair's sprites where its task T is feasible: centres drawn as random_scene draws them (same
+    sprites, colours, shapes and background), a scene in `avoid` (scene keys) or with T infeasible drawn again; each
+    scene taken is added to `avoid`. Each new pair's D, and its plan, are the error-free ones of T's correct plan
+    there (canonical_solution). train.py --train_arrangements trains on them, bench.py --keyed_on arranged evaluates
+    on them. A ValueError if `tries` draws in a row find none."""
+    out = []
+    while len(out) < m:
+        for _ in range(tries):
+            xy = rng.integers(1, W - 1, size=(len(pair.scene.sprites), 2))
+            if not spaced(xy):
+                continue
+            scene = Scene([Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in zip(pair.scene.sprites, xy)],
+                          pair.scene.background)
+            if scene_key(scene) in avoid or not (sols := solutions(scene, pair.task)):
+                continue
+            plan = canonical_solution(sols)
+            d = describe(scene, plan)
+            avoid.add(scene_key(scene))
+            out.append(Pair(scene, pair.task, d, d, plan, plan, "", render(scene, simulate(scene, Plan(None)))[0]))
+            break
+        else:
+            raise ValueError(f"{pair.task.text!r}: no new place of its sprites where it is feasible in {tries} draws")
+    return out
+
+
 TASK_TYPES = ("move to", "stop level with", *(f"go to the {e} edge" for e in EDGES), "centre")
 
 

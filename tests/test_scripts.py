@@ -88,8 +88,9 @@ def test_bench_writes_every_video_with_its_task_prompt_and_verdicts(tiny_ckpt, t
 
 def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, capsys):
     """bench.py --trained_pairs CKPT evaluates --checkpoint on the first --n of the pairs CKPT's run trained on
-    (train.toy_pairs at the run's --train_pairs, --seed and --error_rate, as its checkpoint records them), with their
-    own D; and refuses a checkpoint that trained on no pairs, more pairs than it had, and flags that would choose
+    (train.toy_pairs at the run's --train_pairs, --seed and --error_rate, as its checkpoint records them; its
+    --train_arrangements, or 1 for a run from before that flag), with their own D, as many as the run had (past the
+    bench's 200); and refuses a checkpoint that trained on no pairs, more pairs than it had, and flags that would choose
     another bench or other D."""
     import dataclasses
 
@@ -127,6 +128,11 @@ def test_trained_pairs_are_the_pairs_the_run_trained_on(tiny_ckpt, tmp_path, cap
     models.save_checkpoint(model, old, {"stage": "rl", "args": {"train_pairs": 8, "seed": 3, "error_rate": 0.9}})
     assert "does not record its run's --train_crowded" in exit_2(bench.main, ["--trained_pairs", old, "--n", "2"],
                                                                   capsys)
+    older = str(tmp_path / "older.pt")     # from before --train_arrangements: each task on one scene
+    models.save_checkpoint(model, older, {"stage": "rl", "args": {"train_pairs": 8, "seed": 3, "error_rate": 0.9,
+                                                                   "train_crowded": False}})
+    assert [(p.task.text, p.d_vlm) for p in bench.trained_pairs(older, 5)[0]] == [(p.task.text, p.d_vlm) for p in want]
+    assert "--n 201 is more than the 8 pairs" in exit_2(bench.main, ["--trained_pairs", ckpt, "--n", "201"], capsys)
     assert "not with --crowded" in exit_2(bench.main, ["--trained_pairs", ckpt, "--crowded"], capsys)
     assert "the trained pairs' D are the run's own" in exit_2(
         bench.main, ["--trained_pairs", ckpt, "--condition", "vlm", "--error_rate", "0.1"], capsys)
@@ -140,8 +146,10 @@ def test_keyed_on_moves_or_retasks_each_pair_by_its_rules_and_reads_the_motion(t
     but no longer solves T and T's new plan P' moves otherwise, and moved_pairs draws one; other_tasks gives the same
     frame each other task T' where neither plan solves the other's task, and retasked_pairs draws one; each rule
     restated here on draws where each of its reasons occurs. shown_displacement reads a simulated video's motion
-    back exactly (camera too), and None where the mover is gone; keyed_scores on simulated executions; the command
-    line, and its refusals."""
+    back exactly (camera too), and None where the mover is gone; keyed_scores on simulated executions; arranged_pairs
+    takes each task once (a --train_arrangements run's pairs come M to a task) to world.arrangements' new places,
+    drawn from the run's seed (the bench's: 0) away from every scene it trained on; the command line, and its
+    refusals."""
     import bench
     import reward
     import world
@@ -207,6 +215,38 @@ def test_keyed_on_moves_or_retasks_each_pair_by_its_rules_and_reads_the_motion(t
     done = lambda plan_of: np.stack([simulated(p.scene, plan_of(p, q)) for p, q in retasked])    # noqa: E731
     assert bench.keyed_scores("retasked", done(lambda p, q: p.plan_oracle), retasked)["trained_task"] == 1.0
     assert bench.keyed_scores("retasked", done(lambda p, q: q.plan_oracle), retasked)["trained_task"] == 0.0
+    arranged = bench.arranged_pairs(pairs, 2, 3, world.bench_scene_keys())     # each task once: pairs 0, 2 and 4
+    assert [p for p, _ in arranged] == [pairs[i] for i in (0, 2, 4) for _ in range(bench.ARRANGED)]
+    rng, avoid = np.random.default_rng([3, 8]), set(world.bench_scene_keys())       # drawn from (seed, 8)
+    assert [q.scene for _, q in arranged] == [q.scene for p in pairs[::2]
+                                              for q in world.arrangements(p, bench.ARRANGED, rng, avoid)]
+    assert bench.keyed_scores("arranged", np.zeros(len(arranged)), arranged) == {"tasks": 3}
+    import dataclasses
+    import models
+    import train
+    ckpt = str(tmp_path / "executor_on.pt")     # a run of 2 tasks on 4 places each
+    models.save_checkpoint(models.load_checkpoint(tiny_ckpt)[0], ckpt, {"stage": "distill", "variant": "on", "args":
+                           dataclasses.asdict(train.Args(train_pairs=8, train_arrangements=4, seed=3, error_rate=0))})
+    bench.main(["--checkpoint", tiny_ckpt, "--trained_pairs", ckpt, "--keyed_on", "arranged", "--n", "8", "--steps",
+                "2", "--condition", "vlm", "--json", "--videos", str(tmp_path / "a")])
+    out = capsys.readouterr().out
+    res = json.loads(out.splitlines()[-1])
+    assert res["keyed_on"] == "arranged" and res["n"] == 12 and res["tasks"] == 2 and 0 <= res["task"] <= 1
+    assert "--keyed_on arranged: 6 new places of each of the 2 tasks of the 8 pairs" in out
+    own = train.toy_pairs(train.Args(train_pairs=8, train_arrangements=4, seed=3, error_rate=0))
+    want = bench.arranged_pairs(own, 4, 3, world.bench_scene_keys() | {world.scene_key(p.scene) for p in own})
+    rows = [json.loads(line) for line in open(tmp_path / "a" / "videos.jsonl")]
+    assert [(r["task"], r["prompt"]) for r in rows] == [(q.task.text, q.d_vlm) for _, q in want]
+    bench.main(["--checkpoint", tiny_ckpt, "--keyed_on", "arranged", "--n", "2", "--steps", "2", "--json",
+                "--condition", "oracle", "--videos", str(tmp_path / "b")])      # the bench's first 2, from seed 0
+    want = bench.arranged_pairs(world.bench_pairs(0.0)[:2], 1, 0, world.bench_scene_keys())
+    rows = [json.loads(line) for line in open(tmp_path / "b" / "videos.jsonl")]
+    assert [r["prompt"] for r in rows] == [q.d_oracle for _, q in want] and json.loads(
+        capsys.readouterr().out.splitlines()[-1])["n"] == 12
+    with monkeypatch.context() as m:
+        m.setattr(world, "arrangements", lambda *a: (_ for _ in ()).throw(ValueError("no new place")))
+        assert "--keyed_on arranged: no new place" in exit_2(
+            bench.main, ["--checkpoint", tiny_ckpt, "--keyed_on", "arranged", "--n", "2"], capsys)
     bench.main(["--checkpoint", tiny_ckpt, "--keyed_on", "retasked", "--n", "3", "--steps", "2", "--json",
                 "--videos", str(tmp_path / "v")])
     out = capsys.readouterr().out
@@ -785,7 +825,7 @@ def test_each_bench_diagnostic_reads_the_flags_it_accepts_and_refuses_the_rest(m
     monkeypatch.setattr(train, "load_base", stub("load_base"))                 # the real path's loader
     monkeypatch.setattr(train, "make_pick", stub("make_pick", "a PickScore"))   # --pick's loader
     monkeypatch.setattr(bench, "relate_probe", stub("relate_probe", contextlib.nullcontext()))
-    monkeypatch.setattr(bench, "trained_pairs", stub("trained_pairs", (["a trained pair"], 0.0)))   # its loader
+    monkeypatch.setattr(bench, "trained_pairs", stub("trained_pairs", (["a trained pair"], 0.0, {})))   # its loader
     for name in ("evaluate", "handoff", "pointing", "rank_rdistill", "gallery", "compare_runs"):
         monkeypatch.setattr(bench, name, stub(name))
     value = {"checkpoint": ["x.pt"], "model": ["ltx2-tiny"], "model_path": ["/p"], "lora": ["l.pt"],

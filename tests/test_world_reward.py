@@ -78,6 +78,64 @@ def test_crowded_training_scenes_hold_five_sprites_and_never_the_crowded_benchs(
         monkeypatch.setattr(world, "random_scene", draw)
 
 
+def test_arrangements_place_a_tasks_sprites_anew_where_it_is_feasible(monkeypatch, capsys):
+    """world.arrangements: a pair's sprites at new centres drawn as random_scene draws them, a draw taken unless its
+    sprites touch, its scene is one to avoid (or taken already) or T is infeasible there, each reason met here on the
+    draws and restated; each new pair's D and plan the error-free ones of T's correct plan there. train.py
+    --train_arrangements M: --train_pairs / M tasks of the run's pairs, each on its own scene and M - 1 such places,
+    no scene twice nor a bench's; and its refusals."""
+    import train
+    p = next(p for p in world.bench_pairs(0.0) if p.task.kind == "move_to")
+
+    def draws(seed):     # the scenes arrangements draws from this seed; None where the sprites would touch
+        rng = np.random.default_rng(seed)
+        while True:
+            xy = rng.integers(1, world.W - 1, size=(len(p.scene.sprites), 2))
+            yield Scene([Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in zip(p.scene.sprites, xy)],
+                        p.scene.background) if world.spaced(xy) else None
+    first = next(s for s in draws(5) if s is not None and world.solutions(s, p.task))
+    avoid, want, reasons, taken = {world.scene_key(first)}, [], set(), {world.scene_key(first)}
+    got = world.arrangements(p, 12, np.random.default_rng(5), taken)
+    for s in draws(5):
+        why = ("touch" if s is None else "avoided" if world.scene_key(s) in avoid else
+               "infeasible" if not world.solutions(s, p.task) else "")
+        reasons.add(why)
+        if not why:
+            avoid.add(world.scene_key(s))
+            want.append(s)
+        if len(want) == 12:
+            break
+    assert reasons == {"touch", "avoided", "infeasible", ""}
+    assert [q.scene for q in got] == want and taken == avoid      # each place taken, to be avoided from then on
+    for q in got:
+        plan = world.canonical_solution(world.solutions(q.scene, p.task))
+        assert q.task == p.task and q.plan_oracle == q.plan_vlm == plan and not q.error
+        assert q.d_vlm == q.d_oracle == world.describe(q.scene, plan)
+        assert np.array_equal(q.frame0, _video(q.scene, plan)[0])
+        assert reward.judge_all(_video(q.scene, plan), p.task.text)["task"].yes
+    with monkeypatch.context() as m:
+        m.setattr(world, "solutions", lambda scene, task: [])
+        with pytest.raises(ValueError, match="no new place of its sprites where it is feasible in 50 draws"):
+            world.arrangements(p, 1, np.random.default_rng(0), set(), tries=50)
+    run = ["--stage", "distill", "--train_pairs", "12", "--error_rate", "0", "--seed", "2"]
+    pairs = train.toy_pairs(train.parse_args(run + ["--train_arrangements", "4"]))
+    tasks = world.train_pairs(3, seed=3, error_rate=0.0)
+    assert len(pairs) == 12 and [q.scene for q in pairs[::4]] == [q.scene for q in tasks]
+    assert [q.task for q in pairs] == [t.task for t in tasks for _ in range(4)]
+    first = world.arrangements(tasks[0], 3, np.random.default_rng([2, 7]),     # drawn from (seed, 7)
+                               set(world.bench_scene_keys()) | {world.scene_key(t.scene) for t in tasks})
+    assert [q.scene for q in pairs[1:4]] == [q.scene for q in first]
+    assert all(q.scene.names() == pairs[i // 4 * 4].scene.names() for i, q in enumerate(pairs))
+    keys = [world.scene_key(q.scene) for q in pairs]
+    assert len(set(keys)) == 12 and not set(keys) & world.bench_scene_keys()
+    assert all(reward.judge_all(_video(q.scene, q.plan_vlm), q.task.text)["task"].yes for q in pairs)
+    assert train.toy_pairs(train.parse_args(run)) == world.train_pairs(12, seed=3, error_rate=0.0)
+    assert "not a whole number of tasks on --train_arrangements 5" in exit_2(
+        train.parse_args, run + ["--train_arrangements", "5"], capsys)
+    assert "give --error_rate 0" in exit_2(train.parse_args, run[:4] + ["--train_arrangements", "4"], capsys)
+    assert "--train_arrangements must be >= 1" in exit_2(train.parse_args, run + ["--train_arrangements", "0"], capsys)
+
+
 def test_error_rates_are_laid_over_one_set_of_pairs():
     """make_pairs makes the error-free pairs once and lays each error rate over them. That gives what drawing each
     pair's error inside propose_tasks gives, and a description wrong at one rate stays wrong at every higher one."""
