@@ -337,7 +337,7 @@ def moved_plan(pair, scene: world.Scene) -> world.Plan | None:
 
 
 def moved_pairs(pairs: list, seed: int = 0, tries: int = 20000) -> list:
-    """--keyed_on moved: for each pair, the same sprites at new places (drawn as world.random_scene places them)
+    """--keyed_on moved: for each pair, the same sprites at new places (world.new_place: as random_scene places them)
     until moved_plan finds one; the moved pair's D is that scene's error-free description of its plan P'.
     -> [(pair, moved pair)], leaving out the pairs for which `tries` draws find none (an edge task whose P already
     goes as far as a plan can)."""
@@ -345,12 +345,8 @@ def moved_pairs(pairs: list, seed: int = 0, tries: int = 20000) -> list:
     out = []
     for p in pairs:
         for _ in range(tries):
-            xy = rng.integers(1, world.W - 1, size=(len(p.scene.sprites), 2))
-            if not world.spaced(xy):
-                continue
-            s2 = world.Scene([world.Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in
-                              zip(p.scene.sprites, xy)], p.scene.background)
-            if q := moved_plan(p, s2):
+            s2 = world.new_place(p.scene, rng)
+            if s2 is not None and (q := moved_plan(p, s2)):
                 d = world.describe(s2, q)
                 out.append((p, world.Pair(s2, p.task, d, d, q, q, "", world.render(s2, world.simulate(s2, q))[0])))
                 break

@@ -474,6 +474,15 @@ def spaced(xy: np.ndarray) -> bool:
     return bool((np.abs(xy[:, None] - xy[None]).max(-1) + np.eye(n, dtype=int) * 99).min() >= 4)
 
 
+def new_place(scene: Scene, rng: np.random.Generator) -> Scene | None:
+    """The scene's sprites (colours, shapes, background kept) at centres drawn as random_scene draws them; None where
+    two would touch (not spaced). world.arrangements and bench.moved_pairs draw their new places with it."""
+    xy = rng.integers(1, W - 1, size=(len(scene.sprites), 2))
+    if not spaced(xy):
+        return None
+    return Scene([Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in zip(scene.sprites, xy)], scene.background)
+
+
 def scene_key(scene: Scene) -> tuple:
     return tuple(sorted((s.colour, s.shape, s.x, s.y) for s in scene.sprites))
 
@@ -555,19 +564,15 @@ def train_pairs(n: int, seed: int, error_rate: float, crowded: bool = False) -> 
 
 def arrangements(pair: Pair, m: int, rng: np.random.Generator, avoid: set, tries: int = 20000) -> list[Pair]:
     """m new places of a pair's sprites where its task T is feasible: centres drawn as random_scene draws them (same
-    sprites, colours, shapes and background), a scene in `avoid` (scene keys) or with T infeasible drawn again; each
-    scene taken is added to `avoid`. Each new pair's D, and its plan, are the error-free ones of T's correct plan
-    there (canonical_solution). train.py --train_arrangements trains on them, bench.py --keyed_on arranged evaluates
-    on them. A ValueError if `tries` draws in a row find none."""
+    sprites, colours, shapes and background: new_place), a scene in `avoid` (scene keys) or with T infeasible drawn
+    again; each scene taken is added to `avoid`. Each new pair's D, and its plan, are the error-free ones of T's correct
+    plan there (canonical_solution). train.py --train_arrangements trains on them, bench.py --keyed_on arranged
+    evaluates on them. A ValueError if `tries` draws in a row find none."""
     out = []
     while len(out) < m:
         for _ in range(tries):
-            xy = rng.integers(1, W - 1, size=(len(pair.scene.sprites), 2))
-            if not spaced(xy):
-                continue
-            scene = Scene([Sprite(s.colour, s.shape, int(x), int(y)) for s, (x, y) in zip(pair.scene.sprites, xy)],
-                          pair.scene.background)
-            if scene_key(scene) in avoid or not (sols := solutions(scene, pair.task)):
+            scene = new_place(pair.scene, rng)
+            if scene is None or scene_key(scene) in avoid or not (sols := solutions(scene, pair.task)):
                 continue
             plan = canonical_solution(sols)
             d = describe(scene, plan)
