@@ -200,6 +200,10 @@ class Args:
     eval_cache: str = ""
     """a folder where the base's own evaluations (given T; the Demonstrator given D) are kept and reused by later
     runs from the same base file with the same evaluation settings (the report's runs share one); empty: off"""
+    keep_executors: bool = False
+    """also save the Executor each evaluation before the last scores, beside the final one (--out) as its name with
+    _step<N> (<run_dir>/executor_on_step250.pt), the run's settings and the step in its meta: a curve's points for
+    bench.py (whose --trained_pairs reads them), and what an interrupted run keeps. Trains the same weights"""
     loss_power: float = 1.0
     """weight the velocity loss by (1 - t)^p. p = 0 is the plain loss, which for a model predicting the clean video
     puts weight 1/(1-t)^2 on its error near t = 1 and learns motion (decided at small t) slowly; p = 2 weights the
@@ -359,6 +363,7 @@ READ_BY = {
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
                      "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
+                     "keep_executors",
                      "state_window", "distill_motion_weight",
                      "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width",
                      "model_path", "offload_judge", "grad_checkpoint", "offload_text"),
@@ -910,6 +915,46 @@ def base_evaluation(model, args: Args, demonstrator: bool = False) -> dict:
     return res
 
 
+def executor_path(args: Args, name: str) -> str:
+    """Where a stage saves its Executor: --out, or <run_dir>/executor_<name>.pt (name: the variant, or the trainer)."""
+    return args.out or os.path.join(args.run_dir, f"executor_{name}.pt")
+
+
+def save_executor(model, path: str, meta: dict):
+    """Save an Executor as bench.py loads it: the toy's with its LoRA folded in (a full checkpoint with the base's
+    network and cost), a real model's LoRA alone (bench.py --lora; the base stays where --model_path says). Returns
+    the network saved: the merged copy, or the model itself."""
+    if model.backend == "toy":
+        merged = models.merge_lora(model)
+        models.save_checkpoint(merged, path, meta)
+        return merged
+    models.save_lora(model, path, meta)
+    return model
+
+
+KEPT = []
+"""The Executors --keep_executors saved in this process, in order (main's Ctrl-C line names the last)."""
+
+
+def keep_executor(model, out: str, step: int, meta: dict) -> None:
+    """--keep_executors: the Executor an evaluation before the last scored, saved as `out` with _step<N> before its
+    extension and the step in its meta."""
+    root, ext = os.path.splitext(out)
+    path = f"{root}_step{step}{ext}"
+    save_executor(model, path, {**meta, "step": step})
+    KEPT.append(path)
+
+
+def distill_meta(args: Args, variant: str) -> dict:
+    """The meta of a distill stage's saved Executor: bench.py reads the run's settings from it (--trained_pairs)."""
+    return {"stage": "distill", "variant": variant, "args": dataclasses.asdict(args)}
+
+
+def rl_meta(args: Args) -> dict:
+    """The meta of an rl stage's saved Executor (the run's settings, as distill_meta)."""
+    return {"stage": "rl", "args": dataclasses.asdict(args)}
+
+
 def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None) -> tuple:
     """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
     steps and at the last. at_0 is the base's evaluation given T (or --executor_prompt): a fresh LoRA (B = 0) is
@@ -930,6 +975,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     evals, start = [], time.time()
 
     def log_eval(step):
+        if args.keep_executors and 0 < step < args.steps:       # the last step's is the stage's own save
+            keep_executor(model, executor_path(args, variant), step, distill_meta(args, variant))
         res = evaluate_executor(model, args) if step else at_0
         rec = {"variant": variant, "step": step, **{k: res[k] for k in EVAL_KEYS}, "seconds": time.time() - start}
         evals.append(rec)
@@ -1028,12 +1075,7 @@ def distill_stage(args: Args) -> dict:
         for v in variants:
             model, evals = distill_variant(args, v, pairs, logf, at_0, base)
             results["variants"][v] = evals
-            out = args.out or os.path.join(args.run_dir, f"executor_{v}.pt")
-            meta = {"stage": "distill", "variant": v, "args": dataclasses.asdict(args)}
-            if base is None:    # LoRA folded in: loadable by bench.py
-                models.save_checkpoint(models.merge_lora(model), out, meta)
-            else:               # a real model: the LoRA alone (bench.py --lora)
-                models.save_lora(model, out, meta)
+            save_executor(model, executor_path(args, v), distill_meta(args, v))
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
     plot_fig4_left(results, os.path.join(args.run_dir, "fig4_left.png"))
     with open(os.path.join(args.run_dir, "distill_summary.json"), "w") as f:
@@ -1506,7 +1548,7 @@ def demonstrator_round(step: int, demo, opt, params, args: Args, cfg: rl.RLConfi
 
 # these change memory or speed, not the numbers: a resumed run may change them
 _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "save_every", "eval_every", "toy",
-                "eval_cache", "micro_batch", "grad_checkpoint", "offload_text", "offload_judge")
+                "eval_cache", "keep_executors", "micro_batch", "grad_checkpoint", "offload_text", "offload_judge")
 
 
 def run_state_path(args: Args) -> str:
@@ -1806,6 +1848,8 @@ def rl_stage(args: Args) -> dict:
         if step % args.eval_every == 0 and step < args.steps:    # the last step's is the final evaluation's
             if rank0:
                 with weights_swapped(params, ema):
+                    if args.keep_executors:
+                        keep_executor(model, executor_path(args, args.trainer), step, rl_meta(args))
                     res = evaluate_executor(model, args)
                 evals.append({"step": step, **{k: res[k] for k in eval_keys(res)}})
                 logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
@@ -1820,14 +1864,9 @@ def rl_stage(args: Args) -> dict:
         dist.destroy_process_group()
     if not rank0:
         return {}
-    out = args.out or os.path.join(args.run_dir, f"executor_{args.trainer}.pt")
+    out = executor_path(args, args.trainer)
     with weights_swapped(params, ema):   # the Executor that is saved and judged: the average, under --executor_ema
-        if model.backend == "toy":   # LoRA folded in: the base's network and cost, loadable by bench.py
-            merged = models.merge_lora(model)
-            models.save_checkpoint(merged, out, {"stage": "rl", "args": dataclasses.asdict(args)})
-        else:                        # a real model: the LoRA weights alone (the base stays where --model_path says)
-            merged = model
-            models.save_lora(model, out, {"stage": "rl", "args": dataclasses.asdict(args)})
+        merged = save_executor(model, out, rl_meta(args))
         final = evaluate_executor(merged, args)     # the last point of the curve too: the same network, merged
         write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     evals = ([e for e in evals if e["step"] != args.steps]
@@ -1907,6 +1946,7 @@ def main(argv=None):
     print("config: " + json.dumps(dataclasses.asdict(args)))
     state = run_state_path(args)
     before = os.path.getmtime(state) if os.path.isfile(state) else None      # an earlier run's state, if any
+    KEPT.clear()                                                              # this run's, not an earlier call's
     try:
         STAGES[args.stage](args)
     except (ValueError, FileNotFoundError) as e:   # bad settings, checkpoints or state: one line, exit 2
@@ -1919,6 +1959,8 @@ def main(argv=None):
         ours = os.path.isfile(state) and (args.resume or os.path.getmtime(state) != before)   # saved or resumed
         kept = (f"{state} holds the last state saved (every --save_every steps): the same command with --resume "
                 "continues from it") if args.stage == "rl" and ours else "no resumable state was saved"
+        if KEPT:        # --keep_executors
+            kept += f"; {KEPT[-1]} is the Executor of the last evaluation"
         print(f"\ninterrupted; {kept}", file=sys.stderr)
         sys.exit(130)
     if _under_torchrun():

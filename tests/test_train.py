@@ -301,6 +301,59 @@ def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch
     assert "holds the last state saved" in ctrl_c("--resume")      # ... unless this run resumed from it
     assert "no resumable state" in ctrl_c("--stage", "distill")
 
+    def keeping(args):                   # --keep_executors saved two Executors, then the run is interrupted
+        train.KEPT.extend(["a_step2.pt", "a_step4.pt"])
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(train.STAGES, "distill", keeping)
+    assert "no resumable state was saved; a_step4.pt is the Executor of the last evaluation" in ctrl_c(
+        "--stage", "distill")
+    monkeypatch.setitem(train.STAGES, "distill", interrupted)
+    assert "Executor of the last evaluation" not in ctrl_c("--stage", "distill")     # an earlier call's are not named
+
+
+def test_keep_executors_saves_each_evaluations_executor_and_trains_the_same_weights(tiny_ckpt, tmp_path):
+    """--keep_executors: the Executor of each evaluation before the last, beside the final one as _step<N>, is the
+    Executor a run stopped at that step saves (weights and settings but --steps), bench.py --trained_pairs reads its
+    pairs, and the run trains what it trains without the flag. In the distill stage and in the rl stage (the EMA's
+    weights there, what the evaluation scores)."""
+    def weights(path):
+        return train.models.load_checkpoint(str(path))
+
+    def same(a, b):
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+    for stage, flags, name in (("distill", ["--variant", "on", "--batch", "3"], "on"),
+                               ("rl", ["--group_size", "2", "--tasks_per_step", "2", "--executor_ema", "0.5"], "awm")):
+        def train_run(d, steps, *more):
+            train.main([*TINY_ANY, "--init", tiny_ckpt, "--stage", stage, *flags, "--steps", str(steps),
+                        "--eval_every", "1" if stage == "rl" else "2", *more, "--run_dir", str(tmp_path / d)])
+        at = 1 if stage == "rl" else 2
+        threads = torch.get_num_threads()
+        try:
+            train_run(f"{stage}_kept", 2 * at, "--keep_executors")
+            named = list(train.KEPT)         # what main's Ctrl-C line would name from
+            train_run(f"{stage}_short", at)
+            train_run(f"{stage}_plain", 2 * at)
+        finally:
+            torch.set_num_threads(threads)
+        kept = tmp_path / f"{stage}_kept"
+        assert sorted(p.name for p in kept.glob("executor_*.pt")) == [f"executor_{name}.pt",
+                                                                      f"executor_{name}_step{at}.pt"], stage
+        model, meta = weights(kept / f"executor_{name}_step{at}.pt")
+        short, short_meta = weights(tmp_path / f"{stage}_short" / f"executor_{name}.pt")
+        same(model.state_dict(), short.state_dict())
+        assert meta["step"] == at and meta["stage"] == stage and meta["args"]["keep_executors"]
+        assert {k: v for k, v in meta["args"].items() if k not in ("steps", "run_dir", "keep_executors")} == {
+            k: v for k, v in short_meta["args"].items() if k not in ("steps", "run_dir", "keep_executors")}
+        same(weights(kept / f"executor_{name}.pt")[0].state_dict(),
+             weights(tmp_path / f"{stage}_plain" / f"executor_{name}.pt")[0].state_dict())
+        a = bench.trained_pairs(str(kept / f"executor_{name}_step{at}.pt"), 8)[0]
+        b = bench.trained_pairs(str(kept / f"executor_{name}.pt"), 8)[0]
+        assert [p.task for p in a] == [p.task for p in b] and all(np.array_equal(p.frame0, q.frame0)
+                                                                  for p, q in zip(a, b))
+        assert named == [str(kept / f"executor_{name}_step{at}.pt")]
+
 
 def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     bad = tmp_path / "bad.pt"
@@ -328,7 +381,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
     err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume",
                               "--state_window", "0.5,1"], capsys)
     assert "--state_window '' (now '0.5,1')" in err, err
-    assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume").returncode == 0
+    assert run("train.py", *TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", str(d), "--resume",
+               "--keep_executors").returncode == 0          # a setting that changes no number may change
     err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--steps", "2", "--run_dir", d, "--resume"], capsys)
     assert "already reached step 2 of --steps 2" in err       # a finished run: nothing to resume
     # started afresh over a run's state: a finished run's is overwritten; an unfinished one's is refused and kept
