@@ -945,10 +945,10 @@ def keep_executor(model, out: str, step: int, meta: dict) -> None:
     KEPT.append(path)
 
 
-def executor_meta(args: Args, **more) -> dict:
-    """The meta of a saved Executor: its stage, `more` (the distill stage's variant) and the run's settings, which
-    bench.py reads (--trained_pairs)."""
-    return {"stage": args.stage, **more, "args": dataclasses.asdict(args)}
+def executor_meta(args: Args, stage: str, **more) -> dict:
+    """The meta of a saved Executor: the stage that trained it, `more` (the distill stage's variant) and the run's
+    settings, which bench.py reads (--trained_pairs)."""
+    return {"stage": stage, **more, "args": dataclasses.asdict(args)}
 
 
 def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None) -> tuple:
@@ -972,7 +972,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
 
     def log_eval(step):
         if args.keep_executors and 0 < step < args.steps:       # the last step's is the stage's own save
-            keep_executor(model, executor_path(args, variant), step, executor_meta(args, variant=variant))
+            keep_executor(model, executor_path(args, variant), step, executor_meta(args, "distill", variant=variant))
         res = evaluate_executor(model, args) if step else at_0
         rec = {"variant": variant, "step": step, **{k: res[k] for k in EVAL_KEYS}, "seconds": time.time() - start}
         evals.append(rec)
@@ -1071,7 +1071,7 @@ def distill_stage(args: Args) -> dict:
         for v in variants:
             model, evals = distill_variant(args, v, pairs, logf, at_0, base)
             results["variants"][v] = evals
-            save_executor(model, executor_path(args, v), executor_meta(args, variant=v))
+            save_executor(model, executor_path(args, v), executor_meta(args, "distill", variant=v))
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
     plot_fig4_left(results, os.path.join(args.run_dir, "fig4_left.png"))
     with open(os.path.join(args.run_dir, "distill_summary.json"), "w") as f:
@@ -1845,7 +1845,7 @@ def rl_stage(args: Args) -> dict:
             if rank0:
                 with weights_swapped(params, ema):
                     if args.keep_executors:
-                        keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args))
+                        keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args, "rl"))
                     res = evaluate_executor(model, args)
                 evals.append({"step": step, **{k: res[k] for k in eval_keys(res)}})
                 logf.write(json.dumps({"eval": True, **evals[-1]}) + "\n")
@@ -1862,7 +1862,7 @@ def rl_stage(args: Args) -> dict:
         return {}
     out = executor_path(args, args.trainer)
     with weights_swapped(params, ema):   # the Executor that is saved and judged: the average, under --executor_ema
-        merged = save_executor(model, out, executor_meta(args))
+        merged = save_executor(model, out, executor_meta(args, "rl"))
         final = evaluate_executor(merged, args)     # the last point of the curve too: the same network, merged
         write_rollout_gif(model, os.path.join(args.run_dir, "rollouts_rl.gif"), args)
     evals = ([e for e in evals if e["step"] != args.steps]

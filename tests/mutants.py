@@ -828,9 +828,9 @@ MUTANTS = {
         ("    KEPT.clear()  ", "    pass  ", "Ctrl-C naming an Executor an earlier call in the process kept"),
         ("        if KEPT:        # --keep_executors", "        if False:", "Ctrl-C not naming the kept Executor"),
         ("                with weights_swapped(params, ema):\n                    if args.keep_executors:\n"
-         "                        keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args))\n",
+         '                        keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args, "rl"))\n',
          "                if args.keep_executors:\n"
-         "                    keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args))\n"
+         '                    keep_executor(model, executor_path(args, args.trainer), step, executor_meta(args, "rl"))\n'
          "                with weights_swapped(params, ema):\n",
          "the rl stage keeping its trained weights, not the EMA's that the evaluation scores"),
         ('                "eval_cache", "keep_executors", "micro_batch",', '                "eval_cache", "micro_batch",',
