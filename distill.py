@@ -44,8 +44,9 @@ def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = 
 
 def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict, teacher=None) -> torch.Tensor:
     """v_theta'(x_t, t | c_D) of Eqs. 3, 4, 9, 11: the Demonstrator's velocity, a fixed target (no gradient).
-    The Demonstrator is `model` with adapters off -- or, in Alg. 2's alternating setting, a separately trained
-    network `teacher` (its own adapters on)."""
+    The Demonstrator is `model` with adapters off -- or a separate network `teacher`: Alg. 2's separately trained
+    phi (its own adapters on), or the frozen base beside an Executor that trains every weight (train.py
+    --executor_weights all)."""
     with torch.no_grad(), (models.adapters_disabled(model) if teacher is None else contextlib.nullcontext()):
         return (model if teacher is None else teacher)(x_t, t, c_D)
 
@@ -139,14 +140,14 @@ def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teach
 
 
 def on_policy_loss(model, student_traj, c_E: dict, c_D: dict, generator=None,
-                   window: tuple | None = None, motion_weight: float = 1.0) -> torch.Tensor:
+                   window: tuple | None = None, motion_weight: float = 1.0, teacher=None) -> torch.Tensor:
     """Eq. 5: L_on = E_{(x_t, t) ~ p_theta(. | c_E)} l_theta(x_t, t) = E_tau int_0^1 l_theta(x_t, t) dt, on the
     Executor's own states, with C_theta(tau) = int_0^1 l_theta(x_t, t) dt the trajectory's cost (Eq. 6). Its
     gradient has two terms (Eq. 7): a score-function term E[C_theta(tau) grad log p_theta(tau)] that moves the
     state distribution, and a direct regression term E[grad C_theta(tau)]. Backpropagating through the sampler is
     impractical, so on sampled states held fixed this returns the direct term only -- which is exactly the anchor
     of Eq. 11. The score-function term is what RL with r_distill (Eq. 9) adds."""
-    return anchor_loss(model, student_traj, c_E, c_D, generator, window=window, motion_weight=motion_weight)
+    return anchor_loss(model, student_traj, c_E, c_D, generator, teacher, window=window, motion_weight=motion_weight)
 
 
 # ----------------------------------------------------------------------------------------------------------------

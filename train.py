@@ -168,6 +168,10 @@ class Args:
     lora_embeddings: bool = False
     """LoRA on the toy text encoder's word table too (models.add_lora): lets the Executor move the rows of the words
     that no pretraining caption used, still random vectors (docs/given-t.md, "Task by kind")"""
+    executor_weights: str = "lora"
+    """what of the Executor trains: lora (the paper's, Table 3: a LoRA on the base; the Demonstrator is the base, the
+    same network with adapters off) | all (toy only: every weight of the base; the Demonstrator a frozen copy of it,
+    docs/given-t.md, "Every weight of the Executor"). --lr is then every weight's (pretraining's peak is 1e-3)"""
     sample_steps: int = 10
     """Euler steps of every rollout, in training and evaluation (--train_steps sets training's apart)"""
     train_steps: int = 0
@@ -360,8 +364,8 @@ READ_BY = {
                      "relate", "relate_text", "point_weight", "point_goal_only"), ("pretrain",)),
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
     **dict.fromkeys(("variant", "batch", "sft_dataset"), ("distill",)),
-    **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "lora_rank", "lora_alpha", "lora_convs",
-                     "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
+    **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "executor_weights", "lora_rank", "lora_alpha",
+                     "lora_convs", "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
                      "keep_executors",
                      "state_window", "distill_motion_weight",
@@ -424,6 +428,8 @@ def unread_flags(args: Args) -> list:
         ("model_path", "--model ltx2 or hunyuan15 (real weights)", f"--model {args.model}",
          args.model not in REAL_MODELS),
         ("judge_path", "--judge qwen-vl (real weights)", f"--judge {args.judge}", args.judge != "qwen-vl"),
+        *((name, "--executor_weights lora", "--executor_weights all", args.executor_weights == "all")
+          for name in ("lora_rank", "lora_alpha", "lora_convs", "lora_embeddings")),
         *((name, "--pick pickscore (real weights)", f"--pick {args.pick}", args.pick != "pickscore")
           for name in ("pick_path", "pick_processor_path")),
         ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
@@ -520,7 +526,7 @@ def parse_args(argv=None) -> Args:
     for name, allowed in (("trainer", TRAINERS), ("sampler", ("ode", "sde")), ("adv_agg", ("gdpo", "sum")),
                           ("awm_weighting", ("uniform", "t", "huber", "ghuber")),
                           ("awm_ratio", ("exp_first", "sum_first")), ("awm_times", ("uniform", "grid")),
-                          ("executor_update", ("wmsd", "off")),
+                          ("executor_update", ("wmsd", "off")), ("executor_weights", ("lora", "all")),
                           ("distill_reward", ("trajectory", "per_step")), ("demonstrator", ("base", "executor")),
                           ("executor_ema_schedule", ("constant", "power")),
                           ("task_reward", TOY_TASK_REWARDS),
@@ -558,6 +564,10 @@ def parse_args(argv=None) -> Args:
     if args.model != "toy" and (args.lora_convs or args.lora_embeddings):
         p.error("--lora_convs and --lora_embeddings are for the toy; a real backend's LoRA covers its video attention "
                 "(Table 3)")
+    if args.executor_weights == "all" and (args.model != "toy" or args.alternate or "dmd" in variants):
+        p.error("--executor_weights all trains every weight of the toy beside a frozen copy, its Demonstrator: toy "
+                "model only, and neither --alternate (Alg. 2's phi shares the base's weights) nor --variant dmd (its "
+                "fake score and real score are the base's adapters)")
     if args.judge != "toy" and args.task_reward != "end_state":
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
@@ -951,18 +961,30 @@ def executor_meta(args: Args, stage: str, **more) -> dict:
     return {"stage": stage, **more, "args": dataclasses.asdict(args)}
 
 
+def executor_parameters(model, args: Args) -> tuple:
+    """What of the Executor trains, and its Demonstrator (--executor_weights). lora: a fresh LoRA on `model` (B = 0:
+    the base exactly); the Demonstrator is `model` with adapters off, returned as None (distill.teacher_velocity's
+    default). all: every weight of `model`, beside a frozen copy of it taken first, the Demonstrator. Returns
+    (the parameters the optimizer steps, the Demonstrator network or None)."""
+    if args.executor_weights == "all":
+        teacher = copy.deepcopy(model).requires_grad_(False)
+        return [p.requires_grad_(True) for p in model.parameters()], teacher
+    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
+    return models.lora_parameters(model), None
+
+
 def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None) -> tuple:
-    """Train a fresh Executor LoRA on the base with one self-distillation objective; evaluate every eval_every
-    steps and at the last. at_0 is the base's evaluation given T (or --executor_prompt): a fresh LoRA (B = 0) is
-    the base exactly, so every variant's step 0 is that one evaluation. `base`: a real model, whose +SFT baseline
+    """Train a fresh Executor (a LoRA on the base, or every weight: --executor_weights) with one self-distillation
+    objective; evaluate every eval_every steps and at the last. at_0 is the base's evaluation given T (or
+    --executor_prompt): a fresh Executor (LoRA B = 0) is the base exactly, so every variant's step 0 is that one
+    evaluation. `base`: a real model, whose +SFT baseline
     trains on `pairs`, --sft_dataset's rows (None: the toy base, loaded afresh). Returns (model, list of eval
     records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model = base if base is not None else models.load_checkpoint(args.init or None)[0]
-    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
-    params = models.lora_parameters(model)
+    params, teacher = executor_parameters(model, args)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     fake, fake_opt = None, None
     if variant == "dmd":
@@ -1006,12 +1028,13 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
             c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
-                loss = distill.off_policy_loss(model, distill.rollout(model, x_0, c_D, train_steps(args), True),
-                                               c_E, c_D, gen, window=state_window(args),
+                traj = (distill.rollout(model, x_0, c_D, train_steps(args), True) if teacher is None else
+                        distill.rollout(teacher, x_0, c_D, train_steps(args)))
+                loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
                                                motion_weight=args.distill_motion_weight)
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
                 loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, train_steps(args)),
-                                              c_E, c_D, gen, state_window(args), args.distill_motion_weight)
+                                              c_E, c_D, gen, state_window(args), args.distill_motion_weight, teacher)
             else:                   # App. A.2.1: G_theta from the Executor's own states, then the fake score
                 x = distill.dmd_generator(model, distill.rollout(model, x_0, c_E, train_steps(args)), c_E, gen)
                 loss = distill.dmd_generator_loss(model, fake, x, c_E, c_D, gen)
@@ -1110,8 +1133,11 @@ def write_rollout_gif(model, path: str, args: Args, n: int = 6, scale: int = 8) 
     frame0 = np.stack([p.frame0 for p in pairs])
     batch = args.micro_batch or n
     prompts = bench.prompts_for(pairs, args.executor_prompt)
-    with models.adapters_disabled(model):
-        demo = models.generate(model, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
+    base = model      # the Demonstrator: the base (adapters off), or under --executor_weights all the toy base afresh
+    if args.executor_weights == "all":
+        base = models.load_checkpoint(args.init or None)[0].to(next(model.parameters()).device)
+    with models.adapters_disabled(base):
+        demo = models.generate(base, frame0, [p.d_vlm for p in pairs], args.sample_steps, seed=0, batch=batch)
     exe = models.generate(model, frame0, prompts, args.sample_steps, seed=0, batch=batch)
     if args.model != "toy":
         write_rollout_mp4s(bench.side_by_side(demo, exe), pairs, prompts, os.path.splitext(path)[0],
@@ -1555,10 +1581,12 @@ def run_state_path(args: Args) -> str:
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
                args: Args, ema: list | None = None) -> None:
     """Everything a resumed run needs, written atomically (temp file + rename): the LoRA weights (the base is the
-    --init checkpoint), optimizer state, the Demonstrator's LoRA and optimizer under --alternate, the Executor's
-    EMA under --executor_ema, every RNG state, the evaluations so far and the step."""
+    --init checkpoint; under --executor_weights all, every weight), optimizer state, the Demonstrator's LoRA and
+    optimizer under --alternate, the Executor's EMA under --executor_ema, every RNG state, the evaluations so far and
+    the step."""
     lora = lambda m: {k: v.detach().clone() for k, v in m.state_dict().items() if "lora_" in k}  # noqa: E731
-    state = {"step": step, "lora": lora(model), "opt": opt.state_dict(),
+    trained = model.state_dict() if args.executor_weights == "all" else lora(model)    # what the Executor trains
+    state = {"step": step, "lora": trained, "opt": opt.state_dict(),
              "demo_lora": lora(demo_net) if demo_net is not None else None,
              "demo_opt": demo_opt.state_dict() if demo_opt is not None else None,
              "rng_numpy": rng.bit_generator.state, "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
@@ -1765,11 +1793,11 @@ def rl_stage(args: Args) -> dict:
                         embeddings=args.lora_embeddings)
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
-    models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
-    params = models.lora_parameters(model)
+    params, frozen = executor_parameters(model, args)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
-    # the Demonstrator of Eqs. 9, 11: the fixed base (None: adapters off), Alg. 2's phi, or the Executor itself (A.3)
-    teacher = demo_net if demo_net is not None else (model if args.demonstrator == "executor" else None)
+    # the Demonstrator of Eqs. 9, 11: the fixed base (None: adapters off; or its frozen copy under --executor_weights
+    # all), Alg. 2's phi, or the Executor itself (A.3)
+    teacher = demo_net if demo_net is not None else (model if args.demonstrator == "executor" else frozen)
     ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the base
     cfg = rl_config(args)
     first, log_mode, evals = 1, "w", []
@@ -1871,7 +1899,8 @@ def rl_stage(args: Args) -> dict:
     logf.close()
     say(f"  eval step {args.steps}: {eval_line(final)}", flush=True)
     trainer = "" if anchor_only(args) or not reward_weights(args) else f"{args.trainer}, "   # no L_RL: no trainer
-    name = f"{fig5_setting(args)} ({trainer}{given}{f', EMA {args.executor_ema}' if ema else ''})"
+    every = ", every weight" if args.executor_weights == "all" else ""
+    name = f"{fig5_setting(args)} ({trainer}{given}{every}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:
         rows["trained Demonstrator phi (toy VLM's D)"] = {

@@ -433,6 +433,12 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
                       (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs and --lora_embeddings are for the toy"),
                       (["--model", "ltx2-tiny", "--lora_embeddings"], "are for the toy; a real backend"),
+                      (["--executor_weights", "half"], "--executor_weights: unknown 'half'; choose from lora, all"),
+                      (["--model", "ltx2-tiny", "--executor_weights", "all"], "trains every weight of the toy"),
+                      (["--executor_weights", "all", "--alternate", "2"], "neither --alternate"),
+                      (["--stage", "distill", "--variant", "on,dmd", "--executor_weights", "all"], "nor --variant dmd"),
+                      (["--executor_weights", "all", "--lora_rank", "4"],
+                       "--lora_rank is read with --executor_weights lora only: --executor_weights all would ignore"),
                       (["--model", "ltx2-tiny", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       (["--stage", "distill", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       *([(["--toy_gpu"], "torch sees no GPU")] if no_gpu else []),
@@ -971,6 +977,62 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
         train.distill_variant(dataclasses.replace(args, train_crowded=True), "sft", pairs, logf, res)
     (_, videos, _, _), _, _ = fits[-1]
     assert {len(train.world.read_sprites(v[0])) for v in videos} == {5}
+
+
+def _base_targets(base, targets: list) -> None:
+    """Every Demonstrator velocity distill.teacher_velocity returned (its spy's calls) is `base`'s own at that
+    state, time and c_D."""
+    assert targets
+    with torch.no_grad():
+        for (_, x_t, t, c_D, *_), _, v in targets:
+            assert torch.allclose(v, base(x_t, t, c_D), atol=1e-5)
+
+
+def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_ckpt, tmp_path, monkeypatch):
+    """--executor_weights all, distill stage: the Executor has no adapter and every weight of it trains, and at every
+    step every Demonstrator velocity Eqs. 3 and 5 read is the base's -- not the moving Executor's with adapters off,
+    which it would be if the frozen copy did not arrive -- and Eq. 3's states are the base's rollouts under c_D."""
+    base = train.models.load_checkpoint(tiny_ckpt)[0]
+    rollout = train.distill.rollout
+    targets, rollouts = (_spy(monkeypatch, train.distill, n) for n in ("teacher_velocity", "rollout"))
+    res = {k: 0.0 for k in train.EVAL_KEYS}
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: res)
+    pairs = [p for p in train.world.make_pairs(40, seed=0, error_rate=0.5) if p.error][:4]
+    args = _args(tiny_ckpt, tmp_path, stage="distill", steps=3, batch=2, executor_weights="all", lr=0.01)
+    for variant in ("on", "off"):
+        targets.clear(), rollouts.clear()
+        with open(tmp_path / "log.jsonl", "w") as logf:
+            model, _ = train.distill_variant(args, variant, pairs, logf, res)
+        assert not any(isinstance(m, train.models.LoRA) for m in model.modules())
+        moved = {n for (n, p), q in zip(model.named_parameters(), base.parameters()) if not torch.equal(p, q)}
+        assert {"inp.weight", "text_proj.weight", "out.weight"} <= moved, variant
+        _base_targets(base, targets)
+        assert len(targets) == 3
+        if variant == "off":      # the Demonstrator's states: the base's rollout from the same noise under c_D
+            for (net, x_0, c, steps, *_), _, (xs, _) in rollouts:
+                assert torch.allclose(xs, rollout(base, x_0, c, steps)[0], atol=1e-5)
+
+
+def test_executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_every_weight(tiny_ckpt, tmp_path,
+                                                                                         monkeypatch):
+    """--executor_weights all, rl stage: Eqs. 9 and 11 read the base's velocities at every step, and the state keeps
+    every weight, so 2 steps and then --resume to 4 end where 4 steps do, away from the base."""
+    base = train.models.load_checkpoint(tiny_ckpt)[0]
+    targets = _spy(monkeypatch, train.distill, "teacher_velocity")
+
+    def state(name, steps, resume=False):
+        args = _args(tiny_ckpt, tmp_path / name, steps=steps, executor_weights="all", lr=0.01)
+        args.resume = resume
+        train.rl_stage(args)
+        return torch.load(tmp_path / name / "state.pt", weights_only=True)["lora"]
+
+    whole = state("whole", 4)
+    _base_targets(base, targets)
+    state("halves", 2)
+    halves = state("halves", 4, resume=True)
+    assert whole.keys() == halves.keys() == base.state_dict().keys()
+    assert all(torch.equal(whole[k], halves[k]) for k in whole)
+    assert not torch.equal(whole["inp.weight"], base.state_dict()["inp.weight"])
 
 
 def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(tiny_ckpt, tmp_path, monkeypatch):
