@@ -977,9 +977,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     """Train a fresh Executor (a LoRA on the base, or every weight: --executor_weights) with one self-distillation
     objective; evaluate every eval_every steps and at the last. at_0 is the base's evaluation given T (or
     --executor_prompt): a fresh Executor (LoRA B = 0) is the base exactly, so every variant's step 0 is that one
-    evaluation. `base`: a real model, whose +SFT baseline
-    trains on `pairs`, --sft_dataset's rows (None: the toy base, loaded afresh). Returns (model, list of eval
-    records)."""
+    evaluation. `base`: a real model, whose +SFT baseline trains on `pairs`, --sft_dataset's rows (None: the toy
+    base, loaded afresh). Returns (model, list of eval records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
