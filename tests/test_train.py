@@ -1000,7 +1000,8 @@ def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_c
     pairs = [p for p in train.world.make_pairs(40, seed=0, error_rate=0.5) if p.error][:4]
     args = _args(tiny_ckpt, tmp_path, stage="distill", steps=3, batch=2, executor_weights="all", lr=0.01)
     for variant in ("on", "off"):
-        targets.clear(), rollouts.clear()
+        targets.clear()
+        rollouts.clear()
         with open(tmp_path / "log.jsonl", "w") as logf:
             model, _ = train.distill_variant(args, variant, pairs, logf, res)
         assert not any(isinstance(m, train.models.LoRA) for m in model.modules())
