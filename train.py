@@ -172,6 +172,10 @@ class Args:
     """what of the Executor trains: lora (the paper's, Table 3: a LoRA on the base; the Demonstrator is the base, the
     same network with adapters off) | all (toy only: every weight of the base; the Demonstrator a frozen copy of it,
     docs/given-t.md, "Every weight of the Executor"). --lr is then every weight's (pretraining's peak is 1e-3)"""
+    executor_init: str = ""
+    """rl stage, --executor_weights all: a saved Executor (a distill stage's <run_dir>/executor_<variant>.pt) whose
+    weights the Executor starts from, while the Demonstrator stays the base (--init): Fig. 1's two stages,
+    distillation and then RL. Step 0 of the curve is that Executor's evaluation"""
     sample_steps: int = 10
     """Euler steps of every rollout, in training and evaluation (--train_steps sets training's apart)"""
     train_steps: int = 0
@@ -377,7 +381,8 @@ READ_BY = {
                      "demonstrator", "adv_agg", "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every",
                      "executor_ema_schedule", "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
                      "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume",
-                     "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick"),
+                     "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick",
+                     "executor_init"),
                     ("rl",)),
     "stage": (), "toy": (),
 }
@@ -568,6 +573,9 @@ def parse_args(argv=None) -> Args:
         p.error("--executor_weights all trains every weight of the toy beside a frozen copy, its Demonstrator: toy "
                 "model only, and neither --alternate (Alg. 2's phi shares the base's weights) nor --variant dmd (its "
                 "fake score and real score are the base's adapters)")
+    if args.executor_init and args.executor_weights != "all":
+        p.error("--executor_init starts every weight of the Executor from a saved one: it needs --executor_weights all "
+                "(a saved LoRA Executor of the toy has its adapter folded into the base's weights)")
     if args.judge != "toy" and args.task_reward != "end_state":
         p.error("--task_reward picks among the toy judges; a VLM judge always asks Fig. 10's task prompt")
     if args.judge == "qwen-vl" and not args.judge_path:
@@ -953,6 +961,18 @@ def keep_executor(model, out: str, step: int, meta: dict) -> None:
     path = f"{root}_step{step}{ext}"
     save_executor(model, path, {**meta, "step": step})
     KEPT.append(path)
+
+
+def executor_start(args: Args, model) -> dict | None:
+    """--executor_init's weights (None without it), checked against the base's before anything is written: Fig. 1's
+    second stage, RL from a distilled Executor whose Demonstrator stays the base."""
+    if not args.executor_init:
+        return None
+    start, want = models.load_checkpoint(args.executor_init)[0].state_dict(), model.state_dict()
+    if start.keys() != want.keys() or any(start[k].shape != want[k].shape for k in want):
+        raise ValueError(f"--executor_init {args.executor_init!r} is not an Executor of this base (--init "
+                         f"{args.init or models.SHIPPED_BASE!r}): its weights differ in name or shape")
+    return start
 
 
 def executor_meta(args: Args, stage: str, **more) -> dict:
@@ -1748,7 +1768,7 @@ def load_bench(args: Args, model, train: list) -> list | None:
 
 
 def rl_stage(args: Args) -> dict:
-    """Alg. 1 from the shipped base: every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
+    """Alg. 1 from the shipped base (or --executor_init's Executor): every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
     (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
     L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; saves a resumable state every save_every
     steps; ends with the bench table (Base given T, Demonstrator given the toy VLM's D, Executor given T), a curve,
@@ -1766,7 +1786,7 @@ def rl_stage(args: Args) -> dict:
     start = time.time()
     global JUDGE, BENCH, PICK
     model = load_base(args)   # a bad checkpoint, missing weights or an --eval_height the VAE cannot take stop here,
-                              # before anything is written
+    start_from = executor_start(args, model)                  # and so does a bad --executor_init, before any writing
     JUDGE, PICK = make_judge(args), make_pick(args)
     pairs = load_pairs(args, model)
     BENCH = load_bench(args, model, pairs if args.dataset else [])
@@ -1793,6 +1813,8 @@ def rl_stage(args: Args) -> dict:
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
     params, frozen = executor_parameters(model, args)
+    if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken
+        model.load_state_dict(start_from)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     # the Demonstrator of Eqs. 9, 11: the fixed base (None: adapters off; or its frozen copy under --executor_weights
     # all), Alg. 2's phi, or the Executor itself (A.3)
@@ -1818,9 +1840,9 @@ def rl_stage(args: Args) -> dict:
             with open(os.path.join(args.run_dir, "rl.jsonl"), "w") as f:
                 f.writelines(l + "\n" for l in lines if json.loads(l)["step"] < first)
         say(f"resumed {state_path} at step {first - 1}")
-    elif rank0:
-        base_T = fixed[base_row]
-        evals = [{"step": 0, **{k: base_T[k] for k in eval_keys(base_T)}}]
+    elif rank0:        # step 0: the base given T, or the --executor_init Executor's evaluation
+        at_0 = fixed[base_row] if start_from is None else evaluate_executor(model, args)
+        evals = [{"step": 0, **{k: at_0[k] for k in eval_keys(at_0)}}]
     demo = fixed.get(bench.DEMO_ROW, {})
     if rank0:
         say(f"{len(pairs)} training pairs{' on crowded scenes' if args.train_crowded else ''}; {_world()} "
@@ -1899,6 +1921,7 @@ def rl_stage(args: Args) -> dict:
     say(f"  eval step {args.steps}: {eval_line(final)}", flush=True)
     trainer = "" if anchor_only(args) or not reward_weights(args) else f"{args.trainer}, "   # no L_RL: no trainer
     every = ", every weight" if args.executor_weights == "all" else ""
+    every += f" from {os.path.basename(args.executor_init)}" if args.executor_init else ""
     name = f"{fig5_setting(args)} ({trainer}{given}{every}{f', EMA {args.executor_ema}' if ema else ''})"
     rows = {**fixed, name: {k: final[k] for k in keys}}
     if demo_net is not None:

@@ -841,6 +841,7 @@ MUTANTS = {
     "train.py (every weight)": ([f"tests/test_train.py::test_{name}" for name in (
             "executor_weights_all_trains_every_weight_against_the_frozen_base",
             "executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_every_weight",
+            "executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_demonstrator",
             "bad_input_one_line_exit_2_nothing_written", "read_by_names_the_stages_whose_code_reads_each_flag")], [
         ("        teacher = copy.deepcopy(model).requires_grad_(False)\n",
          "        teacher = model\n", "the Executor its own Demonstrator under --executor_weights all"),
@@ -871,6 +872,21 @@ MUTANTS = {
          "--executor_weights all accepted beside --alternate, whose phi shares the trained weights"),
         ('("executor_update", ("wmsd", "off")), ("executor_weights", ("lora", "all")),',
          '("executor_update", ("wmsd", "off")),', "an unknown --executor_weights accepted"),
+        ("        model.load_state_dict(start_from)\n", "        pass\n",
+         "an --executor_init run starting from the base, its saved Executor unread"),
+        ("    params, frozen = executor_parameters(model, args)\n    if start_from is not None:     # after the "
+         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
+         "    if start_from is not None:\n        model.load_state_dict(start_from)\n"
+         "    params, frozen = executor_parameters(model, args)\n",
+         "the saved Executor, not the base, copied as the Demonstrator of an --executor_init run"),
+        ("        at_0 = fixed[base_row] if start_from is None else evaluate_executor(model, args)",
+         "        at_0 = fixed[base_row]", "step 0 of an --executor_init run the base's score, not its Executor's"),
+        ("    if start.keys() != want.keys() or any(start[k].shape != want[k].shape for k in want):",
+         "    if False:", "an --executor_init of another network accepted, to fail mid-load"),
+        ('    if args.executor_init and args.executor_weights != "all":', "    if False:",
+         "--executor_init accepted beside a LoRA Executor, whose saved base it would make the Demonstrator"),
+        (""""lambda_pick",\n                     "executor_init"),""", """"lambda_pick"),""",
+         "--executor_init accepted by the distill stage, which reads it not"),
     ]),
     "distill.py (every weight)": (["tests/test_train.py::test_executor_weights_all_trains_every_weight_against_the_"
                                    "frozen_base"], [

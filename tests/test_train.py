@@ -439,6 +439,10 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--stage", "distill", "--variant", "on,dmd", "--executor_weights", "all"], "nor --variant dmd"),
                       (["--executor_weights", "all", "--lora_rank", "4"],
                        "--lora_rank is read with --executor_weights lora only: --executor_weights all would ignore"),
+                      (["--executor_init", "e.pt"], "--executor_init starts every weight of the Executor from a "
+                                                    "saved one: it needs --executor_weights all"),
+                      (["--stage", "distill", "--executor_weights", "all", "--executor_init", "e.pt"],
+                       "--executor_init is read with --stage rl only"),
                       (["--model", "ltx2-tiny", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       (["--stage", "distill", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       *([(["--toy_gpu"], "torch sees no GPU")] if no_gpu else []),
@@ -1034,6 +1038,34 @@ def test_executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_ev
     assert whole.keys() == halves.keys() == base.state_dict().keys()
     assert all(torch.equal(whole[k], halves[k]) for k in whole)
     assert not torch.equal(whole["inp.weight"], base.state_dict()["inp.weight"])
+
+
+def test_executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_demonstrator(tiny_ckpt, tmp_path,
+                                                                                          monkeypatch, capsys):
+    """--executor_init (Fig. 1's two stages, distillation and then RL): the rl stage's Executor starts from the saved
+    Executor's weights, which step 0's evaluation scores, while Eqs. 9 and 11 read the base's velocities (the frozen
+    copy taken before the weights arrive); a checkpoint of another network is refused before anything is written."""
+    base = train.models.load_checkpoint(tiny_ckpt)[0]
+    saved = train.models.load_checkpoint(tiny_ckpt)[0]
+    with torch.no_grad():
+        for p in saved.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    train.models.save_checkpoint(saved, str(tmp_path / "executor_off.pt"), {})
+    targets = _spy(monkeypatch, train.distill, "teacher_velocity")
+    real, seen = train.evaluate_executor, []
+    monkeypatch.setattr(train, "evaluate_executor", lambda model, *a, **k: seen.append(
+        {n: v.clone() for n, v in model.state_dict().items()}) or real(model, *a, **k))
+    args = _args(tiny_ckpt, tmp_path / "run", steps=1, eval_every=1, executor_weights="all", lr=0.01,
+                 executor_init=tmp_path / "executor_off.pt")
+    train.rl_stage(args)
+    _base_targets(base, targets)
+    at_0, final = seen[-2:]      # step 0's evaluation, then step 1's
+    assert all(torch.equal(at_0[n], v) for n, v in saved.state_dict().items())
+    assert not torch.equal(final["inp.weight"], at_0["inp.weight"])
+    out = tmp_path / "never"
+    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--executor_weights", "all", "--executor_init",
+                              train.models.SHIPPED_BASE, "--run_dir", out], capsys)
+    assert "is not an Executor of this base" in err and not out.exists(), err
 
 
 def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(tiny_ckpt, tmp_path, monkeypatch):
