@@ -1850,6 +1850,8 @@ def rl_stage(args: Args) -> dict:
             f"{fixed[base_row]['task']:.3f} consistency {fixed[base_row]['consistency']:.3f}; Demonstrator (toy "
             f"VLM's D): task "
             f"{demo['task']:.3f} consistency {demo['consistency']:.3f}  [{time.time() - start:.0f} s]", flush=True)
+    if rank0 and start_from is not None and state is None:   # rank 0 alone holds the evaluations
+        say(f"  eval step 0 (--executor_init, given {given}): {eval_line(evals[0])}", flush=True)
     logf = open(os.path.join(args.run_dir, "rl.jsonl"), log_mode) if rank0 else None
     if logf and first == 1:
         logf.write(json.dumps({"eval": True, **evals[0]}) + "\n")

@@ -1058,6 +1058,7 @@ def test_executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_d
     args = _args(tiny_ckpt, tmp_path / "run", steps=1, eval_every=1, executor_weights="all", lr=0.01,
                  executor_init=tmp_path / "executor_off.pt")
     train.rl_stage(args)
+    assert "eval step 0 (--executor_init, given T)" in capsys.readouterr().out
     _base_targets(base, targets)
     at_0, final = seen[-2:]      # step 0's evaluation, then step 1's
     assert all(torch.equal(at_0[n], v) for n, v in saved.state_dict().items())
