@@ -1768,12 +1768,12 @@ def load_bench(args: Args, model, train: list) -> list | None:
 
 
 def rl_stage(args: Args) -> dict:
-    """Alg. 1 from the shipped base (or --executor_init's Executor): every step samples tasks_per_step (image, T, D) from the toy VLM's pairs
-    (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the Executor's LoRA by
-    L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; saves a resumable state every save_every
-    steps; ends with the bench table (Base given T, Demonstrator given the toy VLM's D, Executor given T), a curve,
-    a GIF and the Executor checkpoint (LoRA merged: loadable by bench.py). Under torchrun the rollouts of each step
-    are split across processes and rank 0 alone evaluates and writes."""
+    """Alg. 1 from the shipped base (or --executor_init's Executor): every step samples tasks_per_step (image, T, D)
+    from the toy VLM's pairs (lines 3-4), rolls out groups, judges, computes r_distill and advantages, and updates the
+    Executor's LoRA (or every weight) by L_RL + beta_d L_anchor (Eq. 12). Evaluates every eval_every steps; saves a
+    resumable state every save_every steps; ends with the bench table (Base given T, Demonstrator given the toy VLM's
+    D, Executor given T), a curve, a GIF and the Executor checkpoint (LoRA merged: loadable by bench.py). Under
+    torchrun the rollouts of each step are split across processes and rank 0 alone evaluates and writes."""
     _dist_init()
     rank0 = _rank() == 0
     say = print if rank0 else (lambda *a, **k: None)
