@@ -173,9 +173,10 @@ class Args:
     same network with adapters off) | all (toy only: every weight of the base; the Demonstrator a frozen copy of it,
     docs/given-t.md, "Every weight of the Executor"). --lr is then every weight's (pretraining's peak is 1e-3)"""
     executor_init: str = ""
-    """rl stage, --executor_weights all: a saved Executor (a distill stage's <run_dir>/executor_<variant>.pt) whose
-    weights the Executor starts from, while the Demonstrator stays the base (--init): Fig. 1's two stages,
-    distillation and then RL. Step 0 of the curve is that Executor's evaluation"""
+    """distill and rl stages, --executor_weights all: a saved Executor (a distill stage's
+    <run_dir>/executor_<variant>.pt) whose weights the Executor starts from, while the Demonstrator stays the base
+    (--init): Fig. 1's two stages, distillation and then RL; in the distill stage, more distillation from a distilled
+    Executor (with a fresh optimizer: not the same run made longer). Step 0 of the curve scores that Executor"""
     sample_steps: int = 10
     """Euler steps of every rollout, in training and evaluation (--train_steps sets training's apart)"""
     train_steps: int = 0
@@ -371,7 +372,7 @@ READ_BY = {
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "executor_weights", "lora_rank", "lora_alpha",
                      "lora_convs", "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
-                     "keep_executors",
+                     "keep_executors", "executor_init",
                      "state_window", "distill_motion_weight",
                      "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width",
                      "model_path", "offload_judge", "grad_checkpoint", "offload_text"),
@@ -381,8 +382,7 @@ READ_BY = {
                      "demonstrator", "adv_agg", "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every",
                      "executor_ema_schedule", "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
                      "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume",
-                     "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick",
-                     "executor_init"),
+                     "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick"),
                     ("rl",)),
     "stage": (), "toy": (),
 }
@@ -993,17 +993,21 @@ def executor_parameters(model, args: Args) -> tuple:
     return models.lora_parameters(model), None
 
 
-def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None) -> tuple:
+def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None, start_from=None) -> tuple:
     """Train a fresh Executor (a LoRA on the base, or every weight: --executor_weights) with one self-distillation
     objective; evaluate every eval_every steps and at the last. at_0 is the base's evaluation given T (or
     --executor_prompt): a fresh Executor (LoRA B = 0) is the base exactly, so every variant's step 0 is that one
     evaluation. `base`: a real model, whose +SFT baseline trains on `pairs`, --sft_dataset's rows (None: the toy
-    base, loaded afresh). Returns (model, list of eval records)."""
+    base, loaded afresh). `start_from`: --executor_init's weights, loaded into every weight of the Executor after its
+    Demonstrator's frozen copy of the base is taken, and scored at step 0 (a fresh optimizer: a second run from a
+    saved Executor, not the same run made longer). Returns (model, list of eval records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model = base if base is not None else models.load_checkpoint(args.init or None)[0]
     params, teacher = executor_parameters(model, args)
+    if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken
+        model.load_state_dict(start_from)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     fake, fake_opt = None, None
     if variant == "dmd":
@@ -1014,7 +1018,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     def log_eval(step):
         if args.keep_executors and 0 < step < args.steps:       # the last step's is the stage's own save
             keep_executor(model, executor_path(args, variant), step, executor_meta(args, "distill", variant=variant))
-        res = evaluate_executor(model, args) if step else at_0
+        res = evaluate_executor(model, args) if step or start_from is not None else at_0
         rec = {"variant": variant, "step": step, **{k: res[k] for k in EVAL_KEYS}, "seconds": time.time() - start}
         evals.append(rec)
         logf.write(json.dumps({"eval": True, **rec}) + "\n")
@@ -1077,8 +1081,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
 
 
 def distill_stage(args: Args) -> dict:
-    """Run each variant from the same base; plot task score vs step (Fig. 4 left) with the Demonstrator and the
-    base as lines; save each Executor LoRA and a GIF of Executor rollouts beside the Demonstrator's."""
+    """Run each variant from the same base (or --executor_init's Executor); plot task score vs step (Fig. 4 left)
+    with the Demonstrator as a line; save each Executor and a GIF of its rollouts beside the Demonstrator's."""
     # the toy's benches and judges, or a real model's own (--eval_dataset, --judge), whatever an rl run before it in
     # this process set; no PickScore (the rl stage's)
     global BENCH, JUDGE, PICK
@@ -1097,21 +1101,24 @@ def distill_stage(args: Args) -> dict:
               f"{f', {args.train_arrangements} places of each task' if args.train_arrangements > 1 else ''}) "
               f"in {time.time() - t0:.0f} s")
         base = None
-    os.makedirs(args.run_dir, exist_ok=True)     # after the inputs are read: a bad one leaves no empty run dir
     net = base if base is not None else models.load_checkpoint(args.init or None)[0]
+    start_from = executor_start(args, net)       # a bad --executor_init stops here too
+    os.makedirs(args.run_dir, exist_ok=True)     # after the inputs are read: a bad one leaves no empty run dir
     demo = base_evaluation(net, args, demonstrator=True)
-    at_0 = base_evaluation(net, args)
+    at_0 = base_evaluation(net, args) if start_from is None else None    # else step 0 scores the saved Executor
     d = "the bench file's D" if BENCH is not None else "the toy VLM's D"
     print(f"{'On the crowded bench, the ' if args.eval_crowded else ''}Demonstrator (base given {d}): "
           f"task {demo['task']:.3f} agent {demo['agent']:.3f} "
           f"consistency {demo['consistency']:.3f}")
+    if start_from is not None:
+        print(f"every variant's Executor starts from {args.executor_init} (its Demonstrator: the base)")
     variants = args.variant.split(",")
     results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
-               "executor_prompt": args.executor_prompt,
+               "executor_prompt": args.executor_prompt, "executor_init": os.path.basename(args.executor_init),
                "bench": args.eval_dataset or ("crowded" if args.eval_crowded else "toy")}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:
-            model, evals = distill_variant(args, v, pairs, logf, at_0, base)
+            model, evals = distill_variant(args, v, pairs, logf, at_0, base, start_from)
             results["variants"][v] = evals
             save_executor(model, executor_path(args, v), executor_meta(args, "distill", variant=v))
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
@@ -1136,8 +1143,9 @@ def plot_fig4_left(results: dict, path: str) -> None:
     given = executor_given(results.get("executor_prompt", "task"))
     where = results.get("bench", "toy")
     where = bench_title(where == "crowded") if where in ("toy", "crowded") else os.path.basename(where)
+    start = f", from {results['executor_init']}" if results.get("executor_init") else ""
     fig.suptitle(f"Self-distillation variants on {where} (paper Fig. 4 "
-                 f"left)\nExecutor given {given}")
+                 f"left)\nExecutor given {given}{start}")
     bench.save_figure(plt, fig, path)
 
 

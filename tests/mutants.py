@@ -835,13 +835,13 @@ MUTANTS = {
          "the rl stage keeping its trained weights, not the EMA's that the evaluation scores"),
         ('                "eval_cache", "keep_executors", "micro_batch",', '                "eval_cache", "micro_batch",',
          "a run resumed with --keep_executors refused"),
-        ('                     "keep_executors",\n', "",
+        ('"keep_executors", "executor_init",', '"executor_init",',
          "--keep_executors accepted by the pretrain stage, which keeps nothing"),
     ]),
     "train.py (every weight)": ([f"tests/test_train.py::test_{name}" for name in (
             "executor_weights_all_trains_every_weight_against_the_frozen_base",
             "executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_every_weight",
-            "executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_demonstrator",
+            "executor_init_starts_the_executor_from_a_saved_one_beside_the_base_demonstrator",
             "bad_input_one_line_exit_2_nothing_written", "read_by_names_the_stages_whose_code_reads_each_flag")], [
         ("        teacher = copy.deepcopy(model).requires_grad_(False)\n",
          "        teacher = model\n", "the Executor its own Demonstrator under --executor_weights all"),
@@ -872,7 +872,9 @@ MUTANTS = {
          "--executor_weights all accepted beside --alternate, whose phi shares the trained weights"),
         ('("executor_update", ("wmsd", "off")), ("executor_weights", ("lora", "all")),',
          '("executor_update", ("wmsd", "off")),', "an unknown --executor_weights accepted"),
-        ("        model.load_state_dict(start_from)\n", "        pass\n",
+        ("    params, frozen = executor_parameters(model, args)\n    if start_from is not None:     # after the "
+         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
+         "    params, frozen = executor_parameters(model, args)\n    if start_from is not None:\n        pass\n",
          "an --executor_init run starting from the base, its saved Executor unread"),
         ("    params, frozen = executor_parameters(model, args)\n    if start_from is not None:     # after the "
          "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
@@ -885,8 +887,27 @@ MUTANTS = {
          "    if False:", "an --executor_init of another network accepted, to fail mid-load"),
         ('    if args.executor_init and args.executor_weights != "all":', "    if False:",
          "--executor_init accepted beside a LoRA Executor, whose saved base it would make the Demonstrator"),
-        (""""lambda_pick",\n                     "executor_init"),""", """"lambda_pick"),""",
-         "--executor_init accepted by the distill stage, which reads it not"),
+        ('"keep_executors", "executor_init",', '"keep_executors",',
+         "--executor_init accepted by the pretrain stage, which reads it not"),
+        ("    params, teacher = executor_parameters(model, args)\n    if start_from is not None:     # after the "
+         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
+         "    params, teacher = executor_parameters(model, args)\n    if start_from is not None:\n        pass\n",
+         "a distill --executor_init run starting from the base, its saved Executor unread"),
+        ("    params, teacher = executor_parameters(model, args)\n    if start_from is not None:     # after the "
+         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
+         "    if start_from is not None:\n        model.load_state_dict(start_from)\n"
+         "    params, teacher = executor_parameters(model, args)\n",
+         "the saved Executor, not the base, copied as the Demonstrator of a distill --executor_init run"),
+        ("        res = evaluate_executor(model, args) if step or start_from is not None else at_0",
+         "        res = evaluate_executor(model, args) if step else at_0",
+         "step 0 of a distill --executor_init run not its Executor's score"),
+        ("            model, evals = distill_variant(args, v, pairs, logf, at_0, base, start_from)",
+         "            model, evals = distill_variant(args, v, pairs, logf, at_0, base)",
+         "the distill stage's variants not handed --executor_init's weights"),
+        ("    start_from = executor_start(args, net)       # a bad --executor_init stops here too\n"
+         "    os.makedirs(args.run_dir, exist_ok=True)",
+         "    os.makedirs(args.run_dir, exist_ok=True)\n    start_from = executor_start(args, net)",
+         "a distill run refusing a bad --executor_init after making its run dir"),
     ]),
     "distill.py (every weight)": (["tests/test_train.py::test_executor_weights_all_trains_every_weight_against_the_"
                                    "frozen_base"], [

@@ -441,8 +441,6 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                        "--lora_rank is read with --executor_weights lora only: --executor_weights all would ignore"),
                       (["--executor_init", "e.pt"], "--executor_init starts every weight of the Executor from a "
                                                     "saved one: it needs --executor_weights all"),
-                      (["--stage", "distill", "--executor_weights", "all", "--executor_init", "e.pt"],
-                       "--executor_init is read with --stage rl only"),
                       (["--model", "ltx2-tiny", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       (["--stage", "distill", "--toy_gpu"], "--toy_gpu puts the toy model of the rl stage"),
                       *([(["--toy_gpu"], "torch sees no GPU")] if no_gpu else []),
@@ -1040,11 +1038,13 @@ def test_executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_ev
     assert not torch.equal(whole["inp.weight"], base.state_dict()["inp.weight"])
 
 
-def test_executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_demonstrator(tiny_ckpt, tmp_path,
-                                                                                          monkeypatch, capsys):
-    """--executor_init (Fig. 1's two stages, distillation and then RL): the rl stage's Executor starts from the saved
-    Executor's weights, which step 0's evaluation scores, while Eqs. 9 and 11 read the base's velocities (the frozen
-    copy taken before the weights arrive); a checkpoint of another network is refused before anything is written."""
+@pytest.mark.parametrize("stage", ["rl", "distill"])
+def test_executor_init_starts_the_executor_from_a_saved_one_beside_the_base_demonstrator(stage, tiny_ckpt, tmp_path,
+                                                                                       monkeypatch, capsys):
+    """--executor_init (Fig. 1's two stages, distillation and then RL; or distillation from a distilled Executor):
+    the stage's Executor starts from the saved Executor's weights, which step 0's evaluation scores, while the
+    Demonstrator's velocities (Eq. 3; Eqs. 9 and 11) are the base's (the frozen copy taken before the weights
+    arrive); a checkpoint of another network is refused before anything is written."""
     base = train.models.load_checkpoint(tiny_ckpt)[0]
     saved = train.models.load_checkpoint(tiny_ckpt)[0]
     with torch.no_grad():
@@ -1055,16 +1055,19 @@ def test_executor_init_starts_the_rl_executor_from_a_saved_one_beside_the_base_d
     real, seen = train.evaluate_executor, []
     monkeypatch.setattr(train, "evaluate_executor", lambda model, *a, **k: seen.append(
         {n: v.clone() for n, v in model.state_dict().items()}) or real(model, *a, **k))
+    distill = dict(stage="distill", variant="off", batch=2) if stage == "distill" else {}
     args = _args(tiny_ckpt, tmp_path / "run", steps=1, eval_every=1, executor_weights="all", lr=0.01,
-                 executor_init=tmp_path / "executor_off.pt")
-    train.rl_stage(args)
-    assert "eval step 0 (--executor_init, given T)" in capsys.readouterr().out
+                 executor_init=tmp_path / "executor_off.pt", **distill)
+    train.STAGES[stage](args)
+    assert ("eval step 0 (--executor_init, given T)" if stage == "rl" else
+            "every variant's Executor starts from") in capsys.readouterr().out
     _base_targets(base, targets)
     at_0, final = seen[-2:]      # step 0's evaluation, then step 1's
     assert all(torch.equal(at_0[n], v) for n, v in saved.state_dict().items())
     assert not torch.equal(final["inp.weight"], at_0["inp.weight"])
     out = tmp_path / "never"
-    err = exit_2(train.main, [*TINY, "--init", tiny_ckpt, "--executor_weights", "all", "--executor_init",
+    tiny = TINY if stage == "rl" else [*TINY_ANY, "--stage", "distill", "--variant", "off"]
+    err = exit_2(train.main, [*tiny, "--init", tiny_ckpt, "--executor_weights", "all", "--executor_init",
                               train.models.SHIPPED_BASE, "--run_dir", out], capsys)
     assert "is not an Executor of this base" in err and not out.exists(), err
 
@@ -1082,7 +1085,7 @@ def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(
     class Handed(Exception):
         pass
 
-    def handed(args, variant, pairs, logf, at_0, base=None):
+    def handed(args, variant, pairs, logf, at_0, base=None, start_from=None):
         raise Handed(pairs)
 
     monkeypatch.setattr(train, "distill_variant", handed)
