@@ -981,13 +981,16 @@ def executor_meta(args: Args, stage: str, **more) -> dict:
     return {"stage": stage, **more, "args": dataclasses.asdict(args)}
 
 
-def executor_parameters(model, args: Args) -> tuple:
+def executor_parameters(model, args: Args, start_from: dict | None = None) -> tuple:
     """What of the Executor trains, and its Demonstrator (--executor_weights). lora: a fresh LoRA on `model` (B = 0:
     the base exactly); the Demonstrator is `model` with adapters off, returned as None (distill.teacher_velocity's
-    default). all: every weight of `model`, beside a frozen copy of it taken first, the Demonstrator. Returns
-    (the parameters the optimizer steps, the Demonstrator network or None)."""
+    default). all: every weight of `model`, beside a frozen copy of it taken first, the Demonstrator; then
+    `start_from` (--executor_init's weights, from executor_start) is loaded into `model`, so the Demonstrator stays
+    the base. Returns (the parameters the optimizer steps, the Demonstrator network or None)."""
     if args.executor_weights == "all":
         teacher = copy.deepcopy(model).requires_grad_(False)
+        if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken
+            model.load_state_dict(start_from)
         return [p.requires_grad_(True) for p in model.parameters()], teacher
     models.add_lora(model, args.lora_rank, args.lora_alpha, convs=args.lora_convs, embeddings=args.lora_embeddings)
     return models.lora_parameters(model), None
@@ -1005,9 +1008,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model = base if base is not None else models.load_checkpoint(args.init or None)[0]
-    params, teacher = executor_parameters(model, args)
-    if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken
-        model.load_state_dict(start_from)
+    params, teacher = executor_parameters(model, args, start_from)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     fake, fake_opt = None, None
     if variant == "dmd":
@@ -1820,9 +1821,7 @@ def rl_stage(args: Args) -> dict:
                         embeddings=args.lora_embeddings)
         demo_params = models.lora_parameters(demo_net)
         demo_opt = torch.optim.Adam(demo_params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)
-    params, frozen = executor_parameters(model, args)
-    if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken
-        model.load_state_dict(start_from)
+    params, frozen = executor_parameters(model, args, start_from)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
     # the Demonstrator of Eqs. 9, 11: the fixed base (None: adapters off; or its frozen copy under --executor_weights
     # all), Alg. 2's phi, or the Executor itself (A.3)

@@ -872,15 +872,18 @@ MUTANTS = {
          "--executor_weights all accepted beside --alternate, whose phi shares the trained weights"),
         ('("executor_update", ("wmsd", "off")), ("executor_weights", ("lora", "all")),',
          '("executor_update", ("wmsd", "off")),', "an unknown --executor_weights accepted"),
-        ("    params, frozen = executor_parameters(model, args)\n    if start_from is not None:     # after the "
-         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
-         "    params, frozen = executor_parameters(model, args)\n    if start_from is not None:\n        pass\n",
+        ("        if start_from is not None:     # after the Demonstrator's frozen copy of the base is taken\n"
+         "            model.load_state_dict(start_from)\n",
+         "        if start_from is not None:\n            pass\n",
          "an --executor_init run starting from the base, its saved Executor unread"),
-        ("    params, frozen = executor_parameters(model, args)\n    if start_from is not None:     # after the "
-         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
-         "    if start_from is not None:\n        model.load_state_dict(start_from)\n"
-         "    params, frozen = executor_parameters(model, args)\n",
+        ("        teacher = copy.deepcopy(model).requires_grad_(False)\n        if start_from is not None:     # after "
+         "the Demonstrator's frozen copy of the base is taken\n            model.load_state_dict(start_from)\n",
+         "        if start_from is not None:\n            model.load_state_dict(start_from)\n"
+         "        teacher = copy.deepcopy(model).requires_grad_(False)\n",
          "the saved Executor, not the base, copied as the Demonstrator of an --executor_init run"),
+        ("    params, frozen = executor_parameters(model, args, start_from)",
+         "    params, frozen = executor_parameters(model, args)",
+         "the rl stage's --executor_init not handed to its Executor, which starts from the base"),
         ("        at_0 = fixed[base_row] if start_from is None else evaluate_executor(model, args)",
          "        at_0 = fixed[base_row]", "step 0 of an --executor_init run the base's score, not its Executor's"),
         ("    if start.keys() != want.keys() or any(start[k].shape != want[k].shape for k in want):",
@@ -889,15 +892,9 @@ MUTANTS = {
          "--executor_init accepted beside a LoRA Executor, whose saved base it would make the Demonstrator"),
         ('"keep_executors", "executor_init",', '"keep_executors",',
          "--executor_init accepted by the pretrain stage, which reads it not"),
-        ("    params, teacher = executor_parameters(model, args)\n    if start_from is not None:     # after the "
-         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
-         "    params, teacher = executor_parameters(model, args)\n    if start_from is not None:\n        pass\n",
-         "a distill --executor_init run starting from the base, its saved Executor unread"),
-        ("    params, teacher = executor_parameters(model, args)\n    if start_from is not None:     # after the "
-         "Demonstrator's frozen copy of the base is taken\n        model.load_state_dict(start_from)\n",
-         "    if start_from is not None:\n        model.load_state_dict(start_from)\n"
-         "    params, teacher = executor_parameters(model, args)\n",
-         "the saved Executor, not the base, copied as the Demonstrator of a distill --executor_init run"),
+        ("    params, teacher = executor_parameters(model, args, start_from)",
+         "    params, teacher = executor_parameters(model, args)",
+         "the distill stage's --executor_init not handed to its Executor, which starts from the base"),
         ("        res = evaluate_executor(model, args) if step or start_from is not None else at_0",
          "        res = evaluate_executor(model, args) if step else at_0",
          "step 0 of a distill --executor_init run not its Executor's score"),
