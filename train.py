@@ -320,10 +320,11 @@ class Args:
     inner_epochs: int = 1
     """optimizer steps on each batch of rollouts (Tab. 3: 1)"""
     executor_ema: float = 0.0
-    """Tab. 3's EMA of the Executor's LoRA weights: ema <- d ema + (1 - d) theta every --executor_ema_every steps,
-    with decay d (the LTX-2 column: 0.96 every step; --executor_ema_schedule power warms it up). Evaluations, the
-    GIF and the saved Executor use the averaged weights; rollouts and updates the trained ones, as Flow-GRPO does.
-    0 = off (the toy's default, and every README result unless it says otherwise)"""
+    """Tab. 3's EMA of the Executor's trained weights: ema <- d ema + (1 - d) theta every --executor_ema_every
+    steps, with decay d (the LTX-2 column: 0.96 every step; --executor_ema_schedule power warms it up). Evaluations,
+    the GIF and the saved (and kept) Executor use the averaged weights; rollouts and updates the trained ones, as
+    Flow-GRPO does. The rl stage, and the distill stage too (its every variant; the average starts where the Executor
+    does). 0 = off (the toy's default, and every README result unless it says otherwise)"""
     executor_ema_every: int = 1
     """steps between updates of --executor_ema (Tab. 3: 1 for LTX-2, 4 for HunyuanVideo-1.5)"""
     executor_ema_schedule: str = "constant"
@@ -372,15 +373,15 @@ READ_BY = {
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "executor_weights", "lora_rank", "lora_alpha",
                      "lora_convs", "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
-                     "keep_executors", "executor_init",
+                     "keep_executors", "executor_init", "executor_ema", "executor_ema_every", "executor_ema_schedule",
                      "state_window", "distill_motion_weight",
                      "model", "eval_dataset", "judge", "judge_path", "micro_batch", "eval_height", "eval_width",
                      "model_path", "offload_judge", "grad_checkpoint", "offload_text"),
                     ("distill", "rl")),
     **dict.fromkeys(("toy_gpu", "dataset", "trainer", "group_size", "tasks_per_step", "sampler", "noise_level",
                      "lambda_task", "task_reward", "lambda_distill", "distill_reward", "lambda_cons", "beta_d",
-                     "demonstrator", "adv_agg", "adv_clip", "inner_epochs", "executor_ema", "executor_ema_every",
-                     "executor_ema_schedule", "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
+                     "demonstrator", "adv_agg", "adv_clip", "inner_epochs",
+                     "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
                      "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume",
                      "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick"),
                     ("rl",)),
@@ -667,8 +668,6 @@ def parse_args(argv=None) -> Args:
         p.error("--ema must lie in [0, 1)")
     if not 0 <= args.executor_ema < 1:
         p.error("--executor_ema must lie in [0, 1) (0: no EMA)")
-    if args.executor_ema and args.stage != "rl":
-        p.error("--executor_ema averages the rl stage's Executor: it needs --stage rl")
     if args.executor_ema_schedule != "constant" and not args.executor_ema:
         p.error("--executor_ema_schedule sets the decay of --executor_ema: it needs --executor_ema > 0")
     if args.point_weight < 0 or (args.point_weight and not args.relate):
@@ -1010,6 +1009,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     model = base if base is not None else models.load_checkpoint(args.init or None)[0]
     params, teacher = executor_parameters(model, args, start_from)
     opt = torch.optim.Adam(params, lr=args.lr, betas=(0.9, 0.999), eps=1e-8, weight_decay=1e-4)  # Table 3
+    ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the start
     fake, fake_opt = None, None
     if variant == "dmd":
         fake = distill.make_fake_score(model, args.lora_rank, args.lora_alpha)
@@ -1017,9 +1017,11 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     evals, start = [], time.time()
 
     def log_eval(step):
-        if args.keep_executors and 0 < step < args.steps:       # the last step's is the stage's own save
-            keep_executor(model, executor_path(args, variant), step, executor_meta(args, "distill", variant=variant))
-        res = evaluate_executor(model, args) if step or start_from is not None else at_0
+        with weights_swapped(params, ema):      # under --executor_ema the average is kept and scored
+            if args.keep_executors and 0 < step < args.steps:       # the last step's is the stage's own save
+                keep_executor(model, executor_path(args, variant), step,
+                              executor_meta(args, "distill", variant=variant))
+            res = evaluate_executor(model, args) if step or start_from is not None else at_0
         rec = {"variant": variant, "step": step, **{k: res[k] for k in EVAL_KEYS}, "seconds": time.time() - start}
         evals.append(rec)
         logf.write(json.dumps({"eval": True, **rec}) + "\n")
@@ -1070,6 +1072,9 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         if loss_of is None:     # the toy's loss above, on the whole batch: one part
             parts, loss_of = [SimpleNamespace(share=1.0)], lambda p: (loss, {})
         value, gnorm, _ = _update(step, opt, params, parts, loss_of, gen, variant)   # Table 3: max grad norm 1
+        if ema is not None and step % args.executor_ema_every == 0:
+            ema_step(ema, params, executor_ema_decay(args.executor_ema, args.executor_ema_schedule,
+                                                     step // args.executor_ema_every - 1))
         rec = {"variant": variant, "step": step, "loss": value, "grad_norm": float(gnorm),
                "step_seconds": time.time() - t0, **extra}
         logf.write(json.dumps(rec) + "\n")
@@ -1078,6 +1083,10 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
                   f"{rec['step_seconds']:.2f} s/step | {_eta(start, step, args.steps)}", flush=True)
         if step % args.eval_every == 0 or step == args.steps:
             log_eval(step)
+    if ema is not None:         # the Executor returned, saved and shown is the average its evaluations scored
+        with torch.no_grad():
+            for p, e in zip(params, ema):
+                p.copy_(e)
     return model, evals
 
 
@@ -1116,6 +1125,7 @@ def distill_stage(args: Args) -> dict:
     variants = args.variant.split(",")
     results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
                "executor_prompt": args.executor_prompt, "executor_init": os.path.basename(args.executor_init),
+               "executor_ema": args.executor_ema,
                "bench": args.eval_dataset or ("crowded" if args.eval_crowded else "toy")}
     with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
         for v in variants:

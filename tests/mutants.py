@@ -906,6 +906,24 @@ MUTANTS = {
          "    os.makedirs(args.run_dir, exist_ok=True)\n    start_from = executor_start(args, net)",
          "a distill run refusing a bad --executor_init after making its run dir"),
     ]),
+    "train.py (distill EMA)": ([f"tests/test_train.py::test_{name}" for name in (
+            "distill_executor_ema_is_what_is_evaluated_kept_and_saved_and_leaves_training_alone",
+            "bad_input_one_line_exit_2_nothing_written", "read_by_names_the_stages_whose_code_reads_each_flag")], [
+        ("        with weights_swapped(params, ema):      # under --executor_ema the average is kept and scored",
+         "        if True:      # under --executor_ema the average is kept and scored",
+         "the distill stage keeping and scoring its trained weights, not the average"),
+        ("    if ema is not None:         # the Executor returned, saved and shown",
+         "    if False:         # the Executor returned, saved and shown",
+         "the distill stage saving its trained weights, not the average its evaluations scored"),
+        ("        if ema is not None and step % args.executor_ema_every == 0:",
+         "        if ema is not None:", "--executor_ema_every ignored by the distill stage"),
+        ("    ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the s",
+         "    ema = [torch.zeros_like(p) for p in params] if args.executor_ema else None   # Table 3's EMA, from the s",
+         "the distill stage's average starting at zero, not at the Executor's start"),
+        ('"executor_init", "executor_ema", "executor_ema_every", "executor_ema_schedule",',
+         '"executor_init", "executor_ema_every", "executor_ema_schedule",',
+         "--executor_ema accepted by the pretrain stage, which trains no Executor"),
+    ]),
     "distill.py (every weight)": (["tests/test_train.py::test_executor_weights_all_trains_every_weight_against_the_"
                                    "frozen_base"], [
         ("    return anchor_loss(model, student_traj, c_E, c_D, generator, teacher, window=window,",

@@ -450,7 +450,7 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--offload_text"], "--offload_text is for a real model's text encoder"),
                       (["--executor_ema", "1"], "--executor_ema must lie in [0, 1)"),
                       (["--executor_ema_every", "0"], "--executor_ema_every must be >= 1"),
-                      (["--stage", "distill", "--executor_ema", "0.9"], "--executor_ema averages the rl stage's"),
+                      (["--stage", "pretrain", "--executor_ema", "0.9"], "--executor_ema is read with --stage distill"),
                       (["--executor_ema_schedule", "power"], "--executor_ema_schedule sets the decay"),
                       (["--executor_ema", "0.9", "--executor_ema_schedule", "cosine"],
                        "--executor_ema_schedule: unknown"),
@@ -685,6 +685,52 @@ def test_executor_ema_is_what_is_evaluated_and_saved_and_leaves_training_alone(t
     want = [x.clone() for x in pw[1][1]]
     train.ema_step(want, pw[2][0], 1 - 2 ** (-2 / 3))
     assert same(pw[2][1], want)
+
+
+def test_distill_executor_ema_is_what_is_evaluated_kept_and_saved_and_leaves_training_alone(tiny_ckpt, tmp_path,
+                                                                                           monkeypatch):
+    """--executor_ema in the distill stage: ema <- d ema + (1 - d) theta after every --executor_ema_every-th update,
+    from the weights the Executor starts with; the mid-run evaluation, the --keep_executors file, the last
+    evaluation and the saved Executor are the average; the trained weights are those of a run without it."""
+    real_update, real_eval = train._update, train.evaluate_executor
+
+    def run_with(name, **kw):
+        """Every update's trained weights, and the weights each evaluation of the Executor saw (not the base's)."""
+        trained, scored = [], []
+
+        def update(step, opt, params, *a, **k):
+            out = real_update(step, opt, params, *a, **k)
+            trained.append([p.detach().clone() for p in params])
+            return out
+
+        def evaluate(model, *a, **k):
+            if trained:
+                scored.append([p.detach().clone() for p in model.parameters()])
+            return real_eval(model, *a, **k)
+
+        monkeypatch.setattr(train, "_update", update)
+        monkeypatch.setattr(train, "evaluate_executor", evaluate)
+        args = _args(tiny_ckpt, tmp_path / name, stage="distill", variant="off", batch=2, steps=4, eval_every=2,
+                     executor_weights="all", lr=0.01, **kw)
+        args.keep_executors = True
+        train.distill_stage(args)
+        load = lambda f: list(train.models.load_checkpoint(str(tmp_path / name / f))[0].parameters())  # noqa: E731
+        return trained, scored, load("executor_off_step2.pt"), load("executor_off.pt")
+
+    def same(xs, ys):
+        return len(xs) == len(ys) > 0 and all(torch.equal(x, y) for x, y in zip(xs, ys))
+
+    plain, plain_scored, plain_kept, plain_saved = run_with("plain")
+    trained, scored, kept, saved = run_with("ema", executor_ema=0.5, executor_ema_every=2)
+    assert all(same(a, b) for a, b in zip(trained, plain)) and len(trained) == 4   # training untouched
+    assert same(plain_saved, plain[-1]) and same(plain_kept, plain[1])             # without it: the trained weights
+    want = list(train.models.load_checkpoint(tiny_ckpt)[0].parameters())           # the start: the base
+    train.ema_step(want, trained[1], 0.5)                                          # step 2's update (every 2nd)
+    assert same(scored[0], want) and same(kept, want) and not same(want, trained[1])
+    train.ema_step(want, trained[3], 0.5)                                          # step 4's
+    assert same(scored[1], want) and same(saved, want) and len(scored) == 2
+    summary = json.load(open(tmp_path / "ema" / "distill_summary.json"))
+    assert summary["executor_ema"] == 0.5 and summary["variants"]["off"][-1]["step"] == 4
 
 
 def test_eval_every_defaults_by_stage_and_a_given_value_stands():
