@@ -1002,7 +1002,9 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     evaluation. `base`: a real model, whose +SFT baseline trains on `pairs`, --sft_dataset's rows (None: the toy
     base, loaded afresh). `start_from`: --executor_init's weights, loaded into every weight of the Executor after its
     Demonstrator's frozen copy of the base is taken, and scored at step 0 (a fresh optimizer: a second run from a
-    saved Executor, not the same run made longer). Returns (model, list of eval records)."""
+    saved Executor, not the same run made longer). Under --executor_ema the evaluations, the kept Executors and the
+    model returned are an average of the trained weights, from where the Executor starts. Returns (model, list of
+    eval records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
