@@ -7,7 +7,8 @@
   distill  -- self-distillation of the Demonstrator (base, adapters off, c_D = (I, D)) into the Executor (base +
               LoRA, c_E = (I, T)), distill.py: --variant off (Eq. 3), on (Eq. 5 = the anchor of Eq. 11 on the
               Executor's own states), dmd (App. A.2.1); sft and paired are SFT baselines. Several variants,
-              comma-separated, run one after another from the same base, plotted together (the paper's Fig. 4 left).
+              comma-separated, run one after another from the same base, plotted together (the paper's Fig. 4 left);
+              a run of one variant resumes with --resume.
   rl       -- the whole method, Alg. 1 (the default stage): groups of Executor rollouts, the judges (reward.py),
               r_distill (Eq. 9), group-relative advantages of the Eq. 10 reward, L_RL (rl.py: awm | flow-grpo |
               grpo | nft) + beta_d L_anchor (Eq. 12). Alg. 2 with --alternate N. Runs under torchrun, resumes with
@@ -352,9 +353,10 @@ class Args:
     beta_phi: float = 1.0
     """Alg. 2: weight of the Demonstrator's anchor to the base, L_base"""
     save_every: int = 10
-    """rl stage: steps between resumable state checkpoints (<run_dir>/state.pt, atomic)"""
+    """rl stage, and a distill run of one --variant: steps between resumable state checkpoints (<run_dir>/state.pt,
+    atomic)"""
     resume: bool = False
-    """continue the rl run in --run_dir from its state.pt (same settings; --steps may grow)"""
+    """continue the rl or one-variant distill run in --run_dir from its state.pt (same settings; --steps may grow)"""
     executor_update: str = "wmsd"
     """Executor rounds: wmsd (L_RL + beta_d L_anchor, Eq. 12) | off (off-policy distillation from the Demonstrator,
     Eq. 3; with --alternate, the paper's "off-policy distillation + RL on the teacher" setting)"""
@@ -382,9 +384,10 @@ READ_BY = {
                      "lambda_task", "task_reward", "lambda_distill", "distill_reward", "lambda_cons", "beta_d",
                      "demonstrator", "adv_agg", "adv_clip", "inner_epochs",
                      "clip_range", "kl_beta", "awm_timesteps", "awm_times", "awm_weighting",
-                     "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi", "save_every", "resume",
+                     "ghuber_power", "awm_ratio", "nft_beta", "alternate", "beta_phi",
                      "executor_update", "pick", "pick_path", "pick_processor_path", "lambda_pick"),
                     ("rl",)),
+    **dict.fromkeys(("save_every", "resume"), ("distill", "rl")),
     "stage": (), "toy": (),
 }
 # The rl stage's trainer flags and the trainers (rl.OBJECTIVES) that read them through rl_config; set for another
@@ -441,6 +444,8 @@ def unread_flags(args: Args) -> list:
         ("noise_level", "SDE rollouts (--sampler sde, or --trainer flow-grpo or grpo)", "ODE rollouts", not sde),
         ("beta_phi", "--alternate N (Alg. 2's Demonstrator rounds)", "--alternate 0", not args.alternate),
         ("executor_ema_every", "--executor_ema > 0", "no --executor_ema", not args.executor_ema),
+        ("save_every", "the rl stage or a distill run of one --variant (its state.pt)", f"--variant {args.variant}",
+         args.stage == "distill" and "," in args.variant),
         *((name, "--stage pretrain, or --variant sft or paired (their video loss)", f"--variant {args.variant}",
            no_video_loss) for name in ("motion_weight", "loss_power")),
         ("train_steps", "the rl stage and --variant off, on or dmd (their rollouts)", f"--variant {args.variant}",
@@ -633,8 +638,10 @@ def parse_args(argv=None) -> Args:
         p.error("--train_crowded draws the toy VLM's pairs on crowded toy scenes: toy model, no --dataset")
     if args.micro_batch < 0:
         p.error(f"--micro_batch must be >= 0 (0: no micro-batches), got {args.micro_batch}")
-    if args.resume and args.stage != "rl":
-        p.error("--resume continues an rl run from its state.pt; the pretrain and distill stages save no state")
+    if args.resume and args.stage == "pretrain":
+        p.error("--resume continues an rl or distill run from its state.pt; the pretrain stage saves no state")
+    if args.resume and args.stage == "distill" and "," in args.variant:
+        p.error("--resume continues a distill run of one --variant; a run of several saves no state")
     if args.micro_batch and args.stage != "rl" and args.model == "toy":
         p.error("--micro_batch splits the rl stage's rollouts, updates and evaluations, or a real model's SFT videos: "
                 "it needs --stage rl or --model other than toy")
@@ -995,7 +1002,8 @@ def executor_parameters(model, args: Args, start_from: dict | None = None) -> tu
     return models.lora_parameters(model), None
 
 
-def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None, start_from=None) -> tuple:
+def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None, start_from=None,
+                    fixed: dict | None = None, state: dict | None = None) -> tuple:
     """Train a fresh Executor (a LoRA on the base, or every weight: --executor_weights) with one self-distillation
     objective; evaluate every eval_every steps and at the last. at_0 is the base's evaluation given T (or
     --executor_prompt): a fresh Executor (LoRA B = 0) is the base exactly, so every variant's step 0 is that one
@@ -1003,8 +1011,11 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     base, loaded afresh). `start_from`: --executor_init's weights, loaded into every weight of the Executor after its
     Demonstrator's frozen copy of the base is taken, and scored at step 0 (a fresh optimizer: a second run from a
     saved Executor, not the same run made longer). Under --executor_ema the evaluations, the kept Executors and the
-    model returned are an average of the trained weights, from where the Executor starts. Returns (model, list of
-    eval records)."""
+    model returned are an average of the trained weights, from where the Executor starts. `fixed`: the run's
+    evaluations that a resumed run does not repeat (the Demonstrator's), for a resumable state saved every
+    --save_every steps (None: no state, as in a run of several variants); `state`: one to resume from, which
+    restores the weights, optimizers, EMA and every RNG where the saved run stood. Returns (model, list of eval
+    records)."""
     seed_everything(args.seed, args.threads)
     gen = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -1030,8 +1041,13 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         logf.flush()
         print(f"[{variant}] eval step {step:4d} | {eval_line(rec)}", flush=True)
 
-    log_eval(0)
-    for step in range(1, args.steps + 1):
+    first = 1
+    if state is not None:       # the state's evaluations include step 0's
+        first, evals = restore_state(state, model, opt, fake, fake_opt, rng, gen, ema), state["evals"]
+        print(f"[{variant}] resumed {run_state_path(args)} at step {first - 1}", flush=True)
+    else:
+        log_eval(0)
+    for step in range(first, args.steps + 1):
         t0 = time.time()
         idx = rng.choice(len(pairs), args.batch, replace=False)
         extra, loss_of = {}, None
@@ -1082,9 +1098,13 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         logf.write(json.dumps(rec) + "\n")
         if step % args.log_every == 0 or step == args.steps:
             print(f"[{variant}] step {step:4d}/{args.steps} | loss {rec['loss']:.5f} | grad {rec['grad_norm']:.3f} | "
-                  f"{rec['step_seconds']:.2f} s/step | {_eta(start, step, args.steps)}", flush=True)
+                  f"{rec['step_seconds']:.2f} s/step | {_eta(start, step - first + 1, args.steps - first + 1)}",
+                  flush=True)
         if step % args.eval_every == 0 or step == args.steps:
             log_eval(step)
+        if fixed is not None and (step % args.save_every == 0 or step == args.steps):
+            logf.flush()      # the log on disk holds every step the state has seen
+            save_state(run_state_path(args), step, model, opt, fake, fake_opt, rng, gen, evals, fixed, args, ema)
     if ema is not None:         # the Executor returned, saved and shown is the average its evaluations scored
         with torch.no_grad():
             for p, e in zip(params, ema):
@@ -1101,6 +1121,10 @@ def distill_stage(args: Args) -> dict:
     BENCH, JUDGE, PICK = None, None, None
     seed_everything(args.seed, args.threads)
     t0 = time.time()
+    one = "," not in args.variant    # a run of one variant keeps a resumable state; one of several does not
+    state = load_state(run_state_path(args), args) if args.resume else None
+    if one and not args.resume:
+        refuse_to_overwrite(run_state_path(args))
     if args.model != "toy":     # Table 1's +SFT row (parse_args lets a real model run nothing else here)
         base = load_real(args)  # a bad model or file stops here, before anything is trained
         pairs = sft_rows(args.sft_dataset, base, args.batch)
@@ -1116,8 +1140,10 @@ def distill_stage(args: Args) -> dict:
     net = base if base is not None else models.load_checkpoint(args.init or None)[0]
     start_from = executor_start(args, net)       # a bad --executor_init stops here too
     os.makedirs(args.run_dir, exist_ok=True)     # after the inputs are read: a bad one leaves no empty run dir
-    demo = base_evaluation(net, args, demonstrator=True)
-    at_0 = base_evaluation(net, args) if start_from is None else None    # else step 0 scores the saved Executor
+    demo = state["fixed"]["demonstrator"] if state else base_evaluation(net, args, demonstrator=True)
+    demo = {k: demo[k] for k in ("task", "agent", "consistency", "avg")}
+    # step 0's score: the base given T, unless step 0 scores --executor_init's Executor or a resumed state holds it
+    at_0 = base_evaluation(net, args) if start_from is None and state is None else None
     d = "the bench file's D" if BENCH is not None else "the toy VLM's D"
     print(f"{'On the crowded bench, the ' if args.eval_crowded else ''}Demonstrator (base given {d}): "
           f"task {demo['task']:.3f} agent {demo['agent']:.3f} "
@@ -1125,13 +1151,17 @@ def distill_stage(args: Args) -> dict:
     if start_from is not None:
         print(f"every variant's Executor starts from {args.executor_init} (its Demonstrator: the base)")
     variants = args.variant.split(",")
-    results = {"demonstrator": {k: demo[k] for k in ("task", "agent", "consistency", "avg")}, "variants": {},
+    results = {"demonstrator": demo, "variants": {},
                "executor_prompt": args.executor_prompt, "executor_init": os.path.basename(args.executor_init),
                "executor_ema": args.executor_ema,
                "bench": args.eval_dataset or ("crowded" if args.eval_crowded else "toy")}
-    with open(os.path.join(args.run_dir, "distill.jsonl"), "w") as logf:
+    log = os.path.join(args.run_dir, "distill.jsonl")
+    if state is not None:
+        keep_logged_steps(log, state["step"] + 1)
+    with open(log, "a" if state is not None else "w") as logf:
         for v in variants:
-            model, evals = distill_variant(args, v, pairs, logf, at_0, base, start_from)
+            model, evals = distill_variant(args, v, pairs, logf, at_0, base, start_from,
+                                           fixed={"demonstrator": demo} if one else None, state=state)
             results["variants"][v] = evals
             save_executor(model, executor_path(args, v), executor_meta(args, "distill", variant=v))
             write_rollout_gif(model, os.path.join(args.run_dir, f"rollouts_{v}.gif"), args)
@@ -1614,16 +1644,18 @@ _RESUME_FREE = ("resume", "steps", "threads", "run_dir", "out", "log_every", "sa
 
 
 def run_state_path(args: Args) -> str:
-    """Where the rl stage keeps its resumable state (--save_every, --resume; main's Ctrl-C line points to it)."""
+    """Where the rl stage, and a distill run of one variant, keep the resumable state (--save_every, --resume; main's
+    Ctrl-C line points to it)."""
     return os.path.join(args.run_dir, "state.pt")
 
 
 def save_state(path: str, step: int, model, opt, demo_net, demo_opt, rng, gen, evals: list, fixed: dict,
                args: Args, ema: list | None = None) -> None:
     """Everything a resumed run needs, written atomically (temp file + rename): the LoRA weights (the base is the
-    --init checkpoint; under --executor_weights all, every weight), optimizer state, the Demonstrator's LoRA and
-    optimizer under --alternate, the Executor's EMA under --executor_ema, every RNG state, the evaluations so far and
-    the step."""
+    --init checkpoint; under --executor_weights all, every weight), optimizer state, the LoRA and optimizer of the
+    second network trained beside the Executor (demo_net: Alg. 2's Demonstrator phi under --alternate, or the DMD
+    variant's fake score), the Executor's EMA under --executor_ema, every RNG state, the evaluations so far, the
+    run's fixed evaluations (those it does not repeat on resuming) and the step."""
     lora = lambda m: {k: v.detach().clone() for k, v in m.state_dict().items() if "lora_" in k}  # noqa: E731
     trained = model.state_dict() if args.executor_weights == "all" else lora(model)    # what the Executor trains
     state = {"step": step, "lora": trained, "opt": opt.state_dict(),
@@ -1653,6 +1685,33 @@ def load_state(path: str, args: Args) -> dict:
     if step >= args.steps:
         raise ValueError(f"--resume: the saved run already reached step {step} of --steps {args.steps}")
     return state
+
+
+def restore_state(state: dict, model, opt, demo_net, demo_opt, rng, gen, ema: list | None) -> int:
+    """Put every piece save_state kept back where the interrupted run left it (the EMA in place); returns the step
+    to go on from."""
+    model.load_state_dict(state["lora"], strict=False)
+    opt.load_state_dict(state["opt"])
+    if ema is not None:     # the state was loaded to the CPU; the average lives beside its weights
+        with torch.no_grad():
+            for e, saved in zip(ema, state["ema"]):
+                e.copy_(saved)
+    if demo_net is not None:
+        demo_net.load_state_dict(state["demo_lora"], strict=False)
+        demo_opt.load_state_dict(state["demo_opt"])
+    rng.bit_generator.state = state["rng_numpy"]
+    gen.set_state(state["gen"])
+    torch.set_rng_state(state["torch_rng"])
+    random.setstate(state["py_random"])
+    return state["step"] + 1
+
+
+def keep_logged_steps(path: str, first: int) -> None:
+    """Cut a resumed run's JSON-lines log to the steps its state has seen (those before `first`): the steps logged
+    after the last save are run, and logged, again."""
+    lines = open(path).read().splitlines()
+    with open(path, "w") as f:
+        f.writelines(line + "\n" for line in lines if json.loads(line)["step"] < first)
 
 
 def refuse_to_overwrite(path: str) -> None:
@@ -1841,23 +1900,11 @@ def rl_stage(args: Args) -> dict:
     ema = [p.detach().clone() for p in params] if args.executor_ema else None   # Table 3's EMA, from the base
     cfg = rl_config(args)
     first, log_mode, evals = 1, "w", []
-    if state is not None:      # put every piece back where the interrupted run left it
-        model.load_state_dict(state["lora"], strict=False)
-        opt.load_state_dict(state["opt"])
-        if ema is not None:      # the state was loaded to the CPU; the average lives beside its weights
-            ema = [e.to(p.device) for e, p in zip(state["ema"], params)]
-        if demo_net is not None:
-            demo_net.load_state_dict(state["demo_lora"], strict=False)
-            demo_opt.load_state_dict(state["demo_opt"])
-        rng.bit_generator.state = state["rng_numpy"]
-        gen.set_state(state["gen"])
-        torch.set_rng_state(state["torch_rng"])
-        random.setstate(state["py_random"])
-        first, evals, log_mode = state["step"] + 1, state["evals"], "a"
-        if rank0:   # the log keeps exactly the steps the state has seen
-            lines = open(os.path.join(args.run_dir, "rl.jsonl")).read().splitlines()
-            with open(os.path.join(args.run_dir, "rl.jsonl"), "w") as f:
-                f.writelines(l + "\n" for l in lines if json.loads(l)["step"] < first)
+    if state is not None:
+        first = restore_state(state, model, opt, demo_net, demo_opt, rng, gen, ema)
+        evals, log_mode = state["evals"], "a"
+        if rank0:
+            keep_logged_steps(os.path.join(args.run_dir, "rl.jsonl"), first)
         say(f"resumed {state_path} at step {first - 1}")
     elif rank0:        # step 0: the base given T, or the --executor_init Executor's evaluation
         at_0 = fixed[base_row] if start_from is None else evaluate_executor(model, args)
@@ -2026,7 +2073,7 @@ def main(argv=None):
     except KeyboardInterrupt:                      # Ctrl-C: what is kept, exit 130 (128 + SIGINT) as a shell would
         ours = os.path.isfile(state) and (args.resume or os.path.getmtime(state) != before)   # saved or resumed
         kept = (f"{state} holds the last state saved (every --save_every steps): the same command with --resume "
-                "continues from it") if args.stage == "rl" and ours else "no resumable state was saved"
+                "continues from it") if ours else "no resumable state was saved"
         if KEPT:        # --keep_executors
             kept += f"; {KEPT[-1]} is the Executor of the last evaluation"
         print(f"\ninterrupted; {kept}", file=sys.stderr)

@@ -29,7 +29,8 @@ def _metrics(path):
     out = []
     for line in open(path):
         r = json.loads(line)
-        out.append({k: v for k, v in r.items() if not k.endswith("_s") and k not in ("step_seconds", "rollouts_per_s")})
+        out.append({k: v for k, v in r.items()
+                    if not k.endswith("_s") and k not in ("step_seconds", "rollouts_per_s", "seconds")})
     return out
 
 
@@ -275,7 +276,7 @@ def test_train_steps_sets_the_training_rollouts_apart_from_evaluation(tiny_ckpt,
 
 def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch):
     """A KeyboardInterrupt in a stage: exit status 130, no traceback, and the line says whether the run dir holds a
-    state that --resume continues (the rl stage's state.pt) or none."""
+    state that --resume continues (the rl stage's or a one-variant distill run's state.pt) or none."""
     def interrupted(args):
         raise KeyboardInterrupt
 
@@ -310,6 +311,8 @@ def test_ctrl_c_ends_with_one_line_on_what_is_kept(tmp_path, capsys, monkeypatch
         "--stage", "distill")
     monkeypatch.setitem(train.STAGES, "distill", interrupted)
     assert "Executor of the last evaluation" not in ctrl_c("--stage", "distill")     # an earlier call's are not named
+    monkeypatch.setitem(train.STAGES, "distill", saving)                            # a distill run's state
+    assert "holds the last state saved" in ctrl_c("--stage", "distill")
 
 
 def test_keep_executors_saves_each_evaluations_executor_and_trains_the_same_weights(tiny_ckpt, tmp_path):
@@ -733,6 +736,55 @@ def test_distill_executor_ema_is_what_is_evaluated_kept_and_saved_and_leaves_tra
     assert summary["executor_ema"] == 0.5 and summary["variants"]["off"][-1]["step"] == 4
 
 
+@pytest.mark.parametrize("variant, more", [("off", {"executor_ema": 0.5}), ("dmd", {})])
+def test_a_distill_run_resumed_ends_where_the_uninterrupted_run_does(tiny_ckpt, tmp_path, monkeypatch, variant, more):
+    """A distill run of one variant saves state.pt every --save_every steps: 2 steps, then --resume to 4, give the
+    4-step run's log, evaluations, weights, optimizer, EMA (Eq. 3's run) and DMD's fake score (App. A.2.1); the
+    state holds the Demonstrator's evaluation, so the resumed run does not take it again. A run of several variants
+    saves no state, a fresh run over an unfinished state is refused, and another stage's state is not resumed."""
+    def run_to(name, steps, resume=False, **kw):
+        args = _args(tiny_ckpt, tmp_path / name, stage="distill", steps=steps, batch=2, lr=0.01, **{"save_every": 1, **kw})
+        return train.distill_stage(dataclasses.replace(args, resume=resume))
+
+    def scores(results):
+        return [{k: v for k, v in e.items() if k != "seconds"} for e in results["variants"][variant]]
+
+    whole = run_to("whole", 4, variant=variant, **more)
+    run_to("halves", 2, variant=variant, **more)
+    evaluated = _spy(monkeypatch, train, "base_evaluation")
+    halves = run_to("halves", 4, resume=True, variant=variant, **more)
+    assert not evaluated                              # neither the Demonstrator nor the base at step 0 again
+    assert scores(halves) == scores(whole) and [e["step"] for e in scores(whole)] == [0, 2, 4]
+    assert halves["demonstrator"] == whole["demonstrator"]
+    assert _metrics(tmp_path / "halves" / "distill.jsonl") == _metrics(tmp_path / "whole" / "distill.jsonl")
+    a, b = (torch.load(tmp_path / d / "state.pt", weights_only=True) for d in ("halves", "whole"))
+    assert a["step"] == b["step"] == 4
+    same = lambda x, y: len(x) == len(y) > 0 and all(torch.equal(u, v) for u, v in zip(x, y))  # noqa: E731
+    assert a["lora"].keys() == b["lora"].keys() and same(list(a["lora"].values()), list(b["lora"].values()))
+    assert same([s["exp_avg_sq"] for s in a["opt"]["state"].values()],
+                [s["exp_avg_sq"] for s in b["opt"]["state"].values()])
+    if variant == "dmd":                              # the fake score and its optimizer came back too
+        assert same(list(a["demo_lora"].values()), list(b["demo_lora"].values()))
+        assert same([s["exp_avg"] for s in a["demo_opt"]["state"].values()],
+                    [s["exp_avg"] for s in b["demo_opt"]["state"].values()])
+    else:                                             # and the Executor's EMA
+        assert same(a["ema"], b["ema"]) and a["demo_lora"] is None
+    saved = [train.models.load_checkpoint(str(tmp_path / d / f"executor_{variant}.pt"))[0].state_dict()
+             for d in ("halves", "whole")]
+    assert same(list(saved[0].values()), list(saved[1].values()))
+    monkeypatch.undo()
+    run_to("two", 1, variant="off,on", save_every=10)          # several variants: no state
+    assert (tmp_path / "two" / "distill_summary.json").exists() and not (tmp_path / "two" / "state.pt").exists()
+    state = torch.load(tmp_path / "whole" / "state.pt", weights_only=True)
+    state["args"]["steps"] = 6                                 # as a 6-step run stopped after step 4's save
+    torch.save(state, tmp_path / "whole" / "state.pt")
+    with pytest.raises(ValueError, match=r"holds an unfinished run \(its state.pt: step 4 of 6\); continue it"):
+        run_to("whole", 6, variant=variant, **more)
+    train.rl_stage(_args(tiny_ckpt, tmp_path / "rl", steps=1))
+    with pytest.raises(ValueError, match=r"written with different settings: --stage 'rl' \(now 'distill'\)"):
+        run_to("rl", 2, resume=True, variant=variant, **more)
+
+
 def test_eval_every_defaults_by_stage_and_a_given_value_stands():
     every = lambda *argv: train.parse_args(list(argv)).eval_every  # noqa: E731
     assert every("--toy") == 25 and every("--stage", "rl") == 25
@@ -820,6 +872,8 @@ def test_nfts_a_max_is_the_advantage_clip_or_5_without_one():
     (["--noise_level", "0.5"], ["--trainer", "nft"], ["--trainer", "grpo"], "ODE rollouts would ignore it"),
     (["--beta_phi", "0.5"], [], ["--alternate", "2"], "--beta_phi is read with --alternate N"),
     (["--executor_ema_every", "2"], [], ["--executor_ema", "0.9"], "--executor_ema_every is read with --executor_ema"),
+    (["--save_every", "5"], ["--stage", "distill", "--variant", "off,on"], ["--stage", "distill", "--variant", "off"],
+     "--save_every is read with the rl stage or a distill run of one --variant (its state.pt) only: --variant off,on"),
     (["--motion_weight", "5"], ["--stage", "distill", "--variant", "off,on"],
      ["--stage", "distill", "--variant", "on,sft"],
      "--motion_weight is read with --stage pretrain, or --variant sft or paired (their video loss) only: --variant"),
@@ -1131,7 +1185,7 @@ def test_train_crowded_draws_both_stages_training_pairs_from_five_sprite_scenes(
     class Handed(Exception):
         pass
 
-    def handed(args, variant, pairs, logf, at_0, base=None, start_from=None):
+    def handed(args, variant, pairs, logf, at_0, base=None, start_from=None, fixed=None, state=None):
         raise Handed(pairs)
 
     monkeypatch.setattr(train, "distill_variant", handed)
