@@ -962,7 +962,6 @@ MUTANTS = {
         ('        demo_net.load_state_dict(state["demo_lora"], strict=False)',
          '        pass', "a resumed Alg. 2 run's Demonstrator phi reset"),
         ("                e.copy_(saved)", "                pass", "a resumed run's EMA restarted from its weights"),
-        ("    torch.set_rng_state(state[\"torch_rng\"])\n", "    pass\n", "a resumed run's torch RNG restarted"),
     ]),
     "distill.py (every weight)": (["tests/test_train.py::test_executor_weights_all_trains_every_weight_against_the_"
                                    "frozen_base"], [

@@ -738,21 +738,37 @@ def test_distill_executor_ema_is_what_is_evaluated_kept_and_saved_and_leaves_tra
 
 @pytest.mark.parametrize("variant, more", [("off", {"executor_ema": 0.5}), ("dmd", {})])
 def test_a_distill_run_resumed_ends_where_the_uninterrupted_run_does(tiny_ckpt, tmp_path, monkeypatch, variant, more):
-    """A distill run of one variant saves state.pt every --save_every steps: 2 steps, then --resume to 4, give the
-    4-step run's log, evaluations, weights, optimizer, EMA (Eq. 3's run) and DMD's fake score (App. A.2.1); the
-    state holds the Demonstrator's evaluation, so the resumed run does not take it again. A run of several variants
-    saves no state, a fresh run over an unfinished state is refused, and another stage's state is not resumed."""
+    """A distill run of one variant saves state.pt every --save_every steps: a 4-step run stopped in step 4 (its
+    state from step 2, its log to step 3) and resumed with --resume gives the uninterrupted run's log, evaluations,
+    weights, optimizer, EMA (Eq. 3's run) and DMD's fake score (App. A.2.1); the state holds the Demonstrator's
+    evaluation, so the resumed run does not take it again. A fresh run over the unfinished state is refused, a run of
+    several variants saves no state, and another stage's state is not resumed."""
     def run_to(name, steps, resume=False, **kw):
-        args = _args(tiny_ckpt, tmp_path / name, stage="distill", steps=steps, batch=2, lr=0.01, **{"save_every": 1, **kw})
+        kw = {"save_every": 1, **kw}
+        args = _args(tiny_ckpt, tmp_path / name, stage="distill", steps=steps, batch=2, lr=0.01, **kw)
         return train.distill_stage(dataclasses.replace(args, resume=resume))
 
     def scores(results):
         return [{k: v for k, v in e.items() if k != "seconds"} for e in results["variants"][variant]]
 
     whole = run_to("whole", 4, variant=variant, **more)
-    run_to("halves", 2, variant=variant, **more)
+    real_update = train._update
+
+    def update(step, *a, **k):
+        if step == 4:
+            raise KeyboardInterrupt
+        return real_update(step, *a, **k)
+
+    monkeypatch.setattr(train, "_update", update)
+    with pytest.raises(KeyboardInterrupt):
+        run_to("halves", 4, variant=variant, save_every=2, **more)
+    monkeypatch.setattr(train, "_update", real_update)
+    assert torch.load(tmp_path / "halves" / "state.pt", weights_only=True)["step"] == 2
+    assert json.loads(open(tmp_path / "halves" / "distill.jsonl").read().splitlines()[-1])["step"] == 3
+    with pytest.raises(ValueError, match=r"holds an unfinished run \(its state.pt: step 2 of 4\); continue it"):
+        run_to("halves", 4, variant=variant, save_every=2, **more)
     evaluated = _spy(monkeypatch, train, "base_evaluation")
-    halves = run_to("halves", 4, resume=True, variant=variant, **more)
+    halves = run_to("halves", 4, resume=True, variant=variant, save_every=2, **more)
     assert not evaluated                              # neither the Demonstrator nor the base at step 0 again
     assert scores(halves) == scores(whole) and [e["step"] for e in scores(whole)] == [0, 2, 4]
     assert halves["demonstrator"] == whole["demonstrator"]
@@ -775,11 +791,6 @@ def test_a_distill_run_resumed_ends_where_the_uninterrupted_run_does(tiny_ckpt, 
     monkeypatch.undo()
     run_to("two", 1, variant="off,on", save_every=10)          # several variants: no state
     assert (tmp_path / "two" / "distill_summary.json").exists() and not (tmp_path / "two" / "state.pt").exists()
-    state = torch.load(tmp_path / "whole" / "state.pt", weights_only=True)
-    state["args"]["steps"] = 6                                 # as a 6-step run stopped after step 4's save
-    torch.save(state, tmp_path / "whole" / "state.pt")
-    with pytest.raises(ValueError, match=r"holds an unfinished run \(its state.pt: step 4 of 6\); continue it"):
-        run_to("whole", 6, variant=variant, **more)
     train.rl_stage(_args(tiny_ckpt, tmp_path / "rl", steps=1))
     with pytest.raises(ValueError, match=r"written with different settings: --stage 'rl' \(now 'distill'\)"):
         run_to("rl", 2, resume=True, variant=variant, **more)
