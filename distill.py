@@ -34,12 +34,24 @@ import models
 # ----------------------------------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = False):
+def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = False, velocities: bool = False):
     """A trajectory of Eq. 2 from noise x_0 (B, ...): the Executor's (adapters on) or, with demonstrator=True, the
     Demonstrator's (adapters off). Returns (xs (steps + 1, B, ...), ts (steps + 1,)); no gradient (Eq. 11's
-    sg(x_t): sampled states are data, not functions of theta)."""
+    sg(x_t): sampled states are data, not functions of theta). With velocities=True, ((xs, ts), vs): also the
+    velocity the sampler took at each grid state, vs (steps, B, ...). On the Demonstrator's trajectory under c_D
+    those are Eq. 3's targets v_theta'(x_{t_k}, t_k | c_D), which off_policy_loss then reads (its teacher_v) instead
+    of running the Demonstrator again at the state it draws: the same numbers, one network call fewer a step."""
+    vs = []
+
+    def v(x, t):
+        out = model(x, t, c)
+        if velocities:
+            vs.append(out)
+        return out
+
     with models.adapters_disabled(model) if demonstrator else contextlib.nullcontext():
-        return flow.sample_ode(lambda x, t: model(x, t, c), x_0, steps, return_trajectory=True)
+        traj = flow.sample_ode(v, x_0, steps, return_trajectory=True)
+    return (traj, torch.stack(vs)) if velocities else traj
 
 
 def teacher_velocity(model, x_t: torch.Tensor, t: torch.Tensor, c_D: dict, teacher=None) -> torch.Tensor:
@@ -112,13 +124,15 @@ def teacher_velocities(model, traj, c_D: dict, teacher=None) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------------------------------
 
 def off_policy_loss(model, teacher_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
-                    shard: tuple | None = None, window: tuple | None = None,
-                    motion_weight: float = 1.0) -> torch.Tensor:
+                    shard: tuple | None = None, window: tuple | None = None, motion_weight: float = 1.0,
+                    teacher_v: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 3: L_off = E_{(x_t, t) ~ p_theta'(. | c_D)} || v_theta(x_t, t | c_E) - v_theta'(x_t, t | c_D) ||^2.
     `teacher_traj` = rollout(model, x_0, c_D, steps, demonstrator=True): states the *Demonstrator* visits, which do
-    not depend on theta -- stable, but the Executor is only taught where the teacher goes. Scalar."""
-    x_t, t = _pick_states(*teacher_traj, generator, shard, window)
-    return discrepancy(model, x_t, t, c_E, c_D, teacher, motion_weight).mean()
+    not depend on theta -- stable, but the Executor is only taught where the teacher goes. `teacher_v`: the
+    Demonstrator's velocities along that trajectory, which its sampler computed (rollout(..., velocities=True)).
+    Scalar."""
+    return _at_drawn_states(model, teacher_traj, c_E, c_D, generator, teacher, shard, window, motion_weight,
+                            teacher_v)
 
 
 def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teacher=None,
@@ -129,10 +143,18 @@ def anchor_loss(model, student_traj, c_E: dict, c_D: dict, generator=None, teach
         L_anchor = E_{tau ~ p_theta(. | c_E)} int_0^1 || v_theta(x̄_t, t | c_E) - v_theta'(x̄_t, t | c_D) ||^2 dt,
 
     x̄_t = sg(x_t). `student_traj` = rollout(model, x_0, c_E, steps): states the *Executor* visits, detached, so no
-    gradient reaches the sampler. One-point estimate of the integral (a random grid time per sample; with `window`,
-    of the integral over [lo, hi) only, up to the factor hi - lo). `teacher_v`: the Demonstrator's velocities along
-    the trajectory (teacher_velocities), if already computed for Eq. 9. Scalar."""
-    xs, ts = student_traj
+    gradient reaches the sampler. `teacher_v`: the Demonstrator's velocities along the trajectory
+    (teacher_velocities), if already computed for Eq. 9. Scalar."""
+    return _at_drawn_states(model, student_traj, c_E, c_D, generator, teacher, shard, window, motion_weight,
+                            teacher_v)
+
+
+def _at_drawn_states(model, traj, c_E, c_D, generator, teacher, shard, window, motion_weight, teacher_v):
+    """The one-point estimate Eqs. 3 and 11 share, on whichever trajectory (xs, ts) they are given: Eq. 4's
+    l_theta at one grid state drawn per sample (_pick_index; with `window`, of the integral over [lo, hi) only, up
+    to the factor hi - lo), the state detached, averaged over the batch. The Demonstrator's velocity there is
+    teacher_v[k] where the caller has it, else computed."""
+    xs, ts = traj
     k, rows = _pick_index(xs, ts, generator, shard, window), torch.arange(xs.shape[1], device=xs.device)
     x_t, t = xs[k, rows].detach(), ts[k]
     v_D = teacher_velocity(model, x_t, t, c_D, teacher) if teacher_v is None else teacher_v[k, rows]

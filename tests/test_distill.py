@@ -138,6 +138,33 @@ def test_eq9_and_the_anchor_read_the_demonstrators_velocities_computed_once(lora
     _perturb(m, 0)
 
 
+def test_eq3_reads_the_velocities_the_demonstrators_sampler_took(lora_model):
+    """rollout(..., velocities=True) returns the trajectory it returns without them and, at every grid state, the
+    velocity its sampler took there: on the Demonstrator's own trajectory under c_D, Eq. 3's targets. Eq. 3 with them
+    (teacher_v) equals Eq. 3 computing its target again at the drawn state, draws and gradients included."""
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0.05)
+    traj, v_D = distill.rollout(m, x0, c_D, 4, demonstrator=True, velocities=True)
+    xs, ts = distill.rollout(m, x0, c_D, 4, demonstrator=True)
+    assert torch.equal(traj[0], xs) and torch.equal(traj[1], ts) and v_D.shape == (4, *x0.shape)
+    assert torch.allclose(v_D, distill.teacher_velocities(m, traj, c_D), rtol=1e-5, atol=1e-7)
+
+    def loss_and_grads(**kw):
+        for p in _lora_B(m):
+            p.grad = None
+        loss = distill.off_policy_loss(m, traj, c_E, c_D, torch.Generator().manual_seed(1), **kw)
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in _lora_B(m)]
+
+    for kw in ({}, {"window": (0.25, 0.75), "motion_weight": 10.0}):
+        own, own_g = loss_and_grads(**kw)
+        read, read_g = loss_and_grads(teacher_v=v_D, **kw)
+        assert own > 0 and torch.allclose(read, own, rtol=1e-5, atol=0)
+        assert all(torch.allclose(a, b, rtol=1e-4, atol=1e-9) for a, b in zip(read_g, own_g))
+        assert not torch.allclose(loss_and_grads(teacher_v=v_D.flip(0), **kw)[0], own)   # another state's target
+    _perturb(m, 0)
+
+
 def test_on_policy_states_are_detached(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)

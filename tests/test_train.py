@@ -1000,11 +1000,13 @@ def test_with_no_reward_weighed_the_step_trains_the_anchor_alone(tiny_ckpt, tmp_
 
 def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tiny_ckpt, tmp_path, monkeypatch):
     """Fig. 5 (iii), --executor_update off: Eq. 3's states are the Demonstrator's (adapters off) under c_D, and the
-    loss compares the Executor under c_E with the Demonstrator under that same c_D."""
+    loss compares the Executor under c_E with the Demonstrator under that same c_D: the velocities its sampler took
+    along that trajectory, not computed again."""
     rollouts, losses = (_spy(monkeypatch, train.distill, n) for n in ("rollout", "off_policy_loss"))
     _one_step(tiny_ckpt, tmp_path, executor_update="off")
-    ((_, _, c, _), kw, _), ((_, _, c_E, c_D, *_), _, _) = rollouts[-1], losses[-1]
+    ((_, _, c, _), kw, (traj, v_D)), ((_, states, c_E, c_D, *_), loss_kw, _) = rollouts[-1], losses[-1]
     assert kw["demonstrator"] and c is c_D and not torch.equal(c_E["ids"], c_D["ids"])
+    assert states is traj and loss_kw["teacher_v"] is v_D
 
 
 def test_the_flags_refused_under_executor_update_off_change_nothing_in_its_rounds(tiny_ckpt, tmp_path, monkeypatch):
@@ -1067,8 +1069,11 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
             c_E, c_D = a[2:4] if variant == "dmd" else a[1:3]            # after (fake, x) or (trajectory)
             assert all(t.startswith("[") for t in texts(c_E)) and set(texts(c_D)) <= {p.d_vlm for p in pairs}
             assert (c is c_D and demo[1:] == [True]) if variant == "off" else (c is c_E and demo[1:] == [])
-        if variant in ("off", "on"):
+        if variant == "on":
             assert losses[name][-1][0][1] is traj
+        if variant == "off":      # the Demonstrator's trajectory, and the velocities its sampler took along it
+            (_, states, *_), kw, _ = losses[name][-1]
+            assert states is traj[0] and kw["teacher_v"] is traj[1]
         if variant == "dmd":
             assert losses["dmd_fake_score_loss"][-1][0][2] is c_E
         if variant == "paired":
@@ -1104,7 +1109,8 @@ def _base_targets(base, targets: list) -> None:
 def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_ckpt, tmp_path, monkeypatch):
     """--executor_weights all, distill stage: the Executor has no adapter and every weight of it trains, and at every
     step every Demonstrator velocity Eqs. 3 and 5 read is the base's -- not the moving Executor's with adapters off,
-    which it would be if the frozen copy did not arrive -- and Eq. 3's states are the base's rollouts under c_D."""
+    which it would be if the frozen copy did not arrive. Eq. 3's states and targets are the base's rollouts under c_D
+    and the velocities its sampler took, not computed again (no teacher_velocity call)."""
     base = train.models.load_checkpoint(tiny_ckpt)[0]
     rollout = train.distill.rollout
     targets, rollouts = (_spy(monkeypatch, train.distill, n) for n in ("teacher_velocity", "rollout"))
@@ -1120,11 +1126,15 @@ def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_c
         assert not any(isinstance(m, train.models.LoRA) for m in model.modules())
         moved = {n for (n, p), q in zip(model.named_parameters(), base.parameters()) if not torch.equal(p, q)}
         assert {"inp.weight", "text_proj.weight", "out.weight"} <= moved, variant
-        _base_targets(base, targets)
-        assert len(targets) == 3
-        if variant == "off":      # the Demonstrator's states: the base's rollout from the same noise under c_D
-            for (net, x_0, c, steps, *_), _, (xs, _) in rollouts:
-                assert torch.allclose(xs, rollout(base, x_0, c, steps)[0], atol=1e-5)
+        if variant == "on":
+            _base_targets(base, targets)
+            assert len(targets) == 3
+        else:      # the Demonstrator's states and velocities: the base's rollout from the same noise under c_D
+            assert not targets and len(rollouts) == 3
+            for (net, x_0, c, steps, *_), kw, ((xs, _), v_D) in rollouts:
+                (base_xs, _), base_v = rollout(base, x_0, c, steps, velocities=True)
+                assert kw["velocities"] and torch.allclose(xs, base_xs, atol=1e-5)
+                assert torch.allclose(v_D, base_v, atol=1e-5)
 
 
 def test_executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_every_weight(tiny_ckpt, tmp_path,
