@@ -22,6 +22,7 @@ from conftest import ROOT, exit_2, run
 TINY_ANY = ["--toy", "--eval_every", "2", "--eval_n", "4", "--train_pairs", "8", "--sample_steps", "3",
             "--threads", "1"]                                                  # flags the distill and rl stages read
 TINY = [*TINY_ANY, "--group_size", "2", "--tasks_per_step", "2", "--save_every", "1"]   # and the rl stage's own flags
+REAL_ROLLOUT = train.distill.rollout     # the one tests spy on, unwrapped
 
 
 def _metrics(path):
@@ -1097,6 +1098,15 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
     assert {len(train.world.read_sprites(v[0])) for v in videos} == {5}
 
 
+def _base_rollouts(base, rollouts: list) -> None:
+    """Every Demonstrator trajectory Eq. 3 read (distill.rollout's spy, calls with velocities=True) is `base`'s own
+    from that noise under c_D: its states and the velocities its sampler took, Eq. 3's targets."""
+    assert rollouts
+    for (net, x_0, c, steps, *_), kw, ((xs, _), v_D) in rollouts:
+        (base_xs, _), base_v = REAL_ROLLOUT(base, x_0, c, steps, velocities=True)
+        assert kw["velocities"] and torch.allclose(xs, base_xs, atol=1e-5) and torch.allclose(v_D, base_v, atol=1e-5)
+
+
 def _base_targets(base, targets: list) -> None:
     """Every Demonstrator velocity distill.teacher_velocity returned (its spy's calls) is `base`'s own at that
     state, time and c_D."""
@@ -1112,7 +1122,6 @@ def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_c
     which it would be if the frozen copy did not arrive. Eq. 3's states and targets are the base's rollouts under c_D
     and the velocities its sampler took, not computed again (no teacher_velocity call)."""
     base = train.models.load_checkpoint(tiny_ckpt)[0]
-    rollout = train.distill.rollout
     targets, rollouts = (_spy(monkeypatch, train.distill, n) for n in ("teacher_velocity", "rollout"))
     res = {k: 0.0 for k in train.EVAL_KEYS}
     monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: res)
@@ -1131,10 +1140,7 @@ def test_executor_weights_all_trains_every_weight_against_the_frozen_base(tiny_c
             assert len(targets) == 3
         else:      # the Demonstrator's states and velocities: the base's rollout from the same noise under c_D
             assert not targets and len(rollouts) == 3
-            for (net, x_0, c, steps, *_), kw, ((xs, _), v_D) in rollouts:
-                (base_xs, _), base_v = rollout(base, x_0, c, steps, velocities=True)
-                assert kw["velocities"] and torch.allclose(xs, base_xs, atol=1e-5)
-                assert torch.allclose(v_D, base_v, atol=1e-5)
+            _base_rollouts(base, rollouts)
 
 
 def test_executor_weights_all_in_the_rl_stage_anchors_to_the_base_and_resumes_every_weight(tiny_ckpt, tmp_path,
@@ -1172,7 +1178,7 @@ def test_executor_init_starts_the_executor_from_a_saved_one_beside_the_base_demo
         for p in saved.parameters():
             p.add_(0.05 * torch.randn_like(p))
     train.models.save_checkpoint(saved, str(tmp_path / "executor_off.pt"), {})
-    targets = _spy(monkeypatch, train.distill, "teacher_velocity")
+    targets, rollouts = (_spy(monkeypatch, train.distill, n) for n in ("teacher_velocity", "rollout"))
     real, seen = train.evaluate_executor, []
     monkeypatch.setattr(train, "evaluate_executor", lambda model, *a, **k: seen.append(
         {n: v.clone() for n, v in model.state_dict().items()}) or real(model, *a, **k))
@@ -1182,7 +1188,10 @@ def test_executor_init_starts_the_executor_from_a_saved_one_beside_the_base_demo
     train.STAGES[stage](args)
     assert ("eval step 0 (--executor_init, given T)" if stage == "rl" else
             "every variant's Executor starts from") in capsys.readouterr().out
-    _base_targets(base, targets)
+    if stage == "rl":      # Eqs. 9 and 11
+        _base_targets(base, targets)
+    else:                  # Eq. 3: the base's own rollouts under c_D, and the velocities its sampler took
+        _base_rollouts(base, [r for r in rollouts if r[1].get("velocities")])
     at_0, final = seen[-2:]      # step 0's evaluation, then step 1's
     assert all(torch.equal(at_0[n], v) for n, v in saved.state_dict().items())
     assert not torch.equal(final["inp.weight"], at_0["inp.weight"])
