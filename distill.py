@@ -34,22 +34,26 @@ import models
 # ----------------------------------------------------------------------------------------------------------------
 
 @torch.no_grad()
-def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = False, velocities: bool = False):
+def rollout(model, x_0: torch.Tensor, c: dict, steps: int, demonstrator: bool = False, velocities: bool = False,
+            teacher=None):
     """A trajectory of Eq. 2 from noise x_0 (B, ...): the Executor's (adapters on) or, with demonstrator=True, the
-    Demonstrator's (adapters off). Returns (xs (steps + 1, B, ...), ts (steps + 1,)); no gradient (Eq. 11's
+    Demonstrator's -- `model` with adapters off, or the separate network `teacher` where one is given (as in
+    teacher_velocity). Returns (xs (steps + 1, B, ...), ts (steps + 1,)); no gradient (Eq. 11's
     sg(x_t): sampled states are data, not functions of theta). With velocities=True, ((xs, ts), vs): also the
     velocity the sampler took at each grid state, vs (steps, B, ...). On the Demonstrator's trajectory under c_D
     those are Eq. 3's targets v_theta'(x_{t_k}, t_k | c_D), which off_policy_loss then reads (its teacher_v) instead
     of running the Demonstrator again at the state it draws: the same numbers, one network call fewer a step."""
-    vs = []
+    if teacher is not None and not demonstrator:
+        raise ValueError("a teacher is the Demonstrator: give demonstrator=True with it")
+    net, vs = (teacher if teacher is not None else model), []
 
     def v(x, t):
-        out = model(x, t, c)
+        out = net(x, t, c)
         if velocities:
             vs.append(out)
         return out
 
-    with models.adapters_disabled(model) if demonstrator else contextlib.nullcontext():
+    with models.adapters_disabled(model) if demonstrator and teacher is None else contextlib.nullcontext():
         traj = flow.sample_ode(v, x_0, steps, return_trajectory=True)
     return (traj, torch.stack(vs)) if velocities else traj
 

@@ -1072,9 +1072,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
             c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
-                traj, v_D = (distill.rollout(model, x_0, c_D, train_steps(args), True, velocities=True)
-                             if teacher is None else
-                             distill.rollout(teacher, x_0, c_D, train_steps(args), velocities=True))
+                traj, v_D = distill.rollout(model, x_0, c_D, train_steps(args), True, velocities=True, teacher=teacher)
                 loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
                                                motion_weight=args.distill_motion_weight, teacher_v=v_D)
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
@@ -1537,10 +1535,8 @@ def rl_step(step: int, model, opt, params, args: Args, cfg: rl.RLConfig, frame0,
     t0 = time.time()
     if args.executor_update == "off":   # setting (iii): the Executor only imitates the teacher's trajectories, Eq. 3
         def off_policy(p):
-            traj, v_D = (distill.rollout(teacher, b.x_0[p.rows], p.c_D, train_steps(args), velocities=True)
-                         if teacher is not None else
-                         distill.rollout(model, b.x_0[p.rows], p.c_D, train_steps(args), demonstrator=True,
-                                         velocities=True))
+            traj, v_D = distill.rollout(model, b.x_0[p.rows], p.c_D, train_steps(args), demonstrator=True,
+                                        velocities=True, teacher=teacher)
             return distill.off_policy_loss(model, traj, p.c_E, p.c_D, gen, teacher, p.shard, state_window(args),
                                            args.distill_motion_weight, teacher_v=v_D), {}
         loss, gnorm, _ = _update(step, opt, params, parts, off_policy, gen, "off-policy")

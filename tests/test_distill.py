@@ -165,6 +165,23 @@ def test_eq3_reads_the_velocities_the_demonstrators_sampler_took(lora_model):
     _perturb(m, 0)
 
 
+def test_the_demonstrators_rollout_is_a_given_teachers(lora_model):
+    """rollout(..., demonstrator=True, teacher=net) is the separate network's trajectory (Alg. 2's phi, the frozen
+    base beside an every-weight Executor), velocities included, with its own adapters on -- as teacher_velocity
+    reads it; without a teacher, `model` with adapters off. A teacher without demonstrator=True is refused."""
+    m, c_E, c_D, x0 = lora_model
+    _perturb(m, 0)
+    teacher = copy.deepcopy(m)
+    _perturb(teacher, 0.05)      # phi: adapters of its own, on
+    traj, v_D = distill.rollout(m, x0, c_D, 4, demonstrator=True, velocities=True, teacher=teacher)
+    xs, ts = flow.sample_ode(lambda x, t: teacher(x, t, c_D), x0, 4, return_trajectory=True)
+    assert torch.allclose(traj[0], xs, rtol=1e-5, atol=1e-6) and torch.equal(traj[1], ts)
+    assert torch.allclose(v_D, distill.teacher_velocities(m, traj, c_D, teacher), rtol=1e-5, atol=1e-7)
+    assert not torch.allclose(traj[0], distill.rollout(m, x0, c_D, 4, demonstrator=True)[0])   # not m's, adapters off
+    with pytest.raises(ValueError, match="demonstrator=True"):
+        distill.rollout(m, x0, c_E, 4, teacher=teacher)
+
+
 def test_on_policy_states_are_detached(lora_model):
     m, c_E, c_D, x0 = lora_model
     _perturb(m, 0.05)

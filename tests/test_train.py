@@ -1010,6 +1010,30 @@ def test_off_policy_update_regresses_on_the_demonstrators_own_states_under_d(tin
     assert states is traj and loss_kw["teacher_v"] is v_D
 
 
+def test_alg2s_off_policy_rounds_regress_on_phis_states_and_velocities(tiny_ckpt, tmp_path, monkeypatch):
+    """Fig. 5 (iii) as the paper runs it, --executor_update off with --alternate ("off-policy distillation + RL on
+    the teacher"): the Executor's Eq. 3 follows the trained Demonstrator phi -- its trajectory under c_D and the
+    velocities its sampler took -- not the base's."""
+    args = _args(tiny_ckpt, tmp_path, group_size=4, executor_update="off", alternate=2)
+    model = train.models.load_checkpoint(tiny_ckpt)[0]
+    phi = train.models.copy_for_adapter(model)
+    torch.manual_seed(0)
+    for net in (model, phi):
+        train.models.add_lora(net, args.lora_rank, args.lora_alpha)
+    for name, p in phi.named_parameters():      # phi trained away from the base
+        if "lora_B" in name:
+            p.data.normal_(0, 0.05)
+    params = train.models.lora_parameters(model)
+    rollouts = _spy(monkeypatch, train.distill, "rollout")
+    frame0, tasks, descs = train._batch(train.world.bench_pairs(0.3), [0, 1])
+    train.rl_step(1, model, torch.optim.Adam(params, lr=args.lr), params, args, train.rl_config(args), frame0, tasks,
+                  descs, torch.Generator().manual_seed(0), teacher=phi)
+    (_, _, c_D, _), _, (traj, v_D) = rollouts[-1]
+    phis = train.distill.teacher_velocities(model, traj, c_D, phi)
+    assert torch.allclose(v_D, phis, rtol=1e-4, atol=1e-6)      # with Eq. 2's steps: phi's trajectory
+    assert not torch.allclose(v_D, train.distill.teacher_velocities(model, traj, c_D), rtol=1e-4, atol=1e-6)
+
+
 def test_the_flags_refused_under_executor_update_off_change_nothing_in_its_rounds(tiny_ckpt, tmp_path, monkeypatch):
     """train.unread_flags' rules for Fig. 5 (iii), checked against the code: each flag it refuses under
     --executor_update off leaves the Executor's off-policy round (loss, LoRA gradients, random stream) exactly as it
