@@ -1126,7 +1126,7 @@ def _base_rollouts(base, rollouts: list) -> None:
     """Every Demonstrator trajectory Eq. 3 read (distill.rollout's spy, calls with velocities=True) is `base`'s own
     from that noise under c_D: its states and the velocities its sampler took, Eq. 3's targets."""
     assert rollouts
-    for (net, x_0, c, steps, *_), kw, ((xs, _), v_D) in rollouts:
+    for (_, x_0, c, steps, *_), kw, ((xs, _), v_D) in rollouts:     # the first argument is the Executor
         (base_xs, _), base_v = REAL_ROLLOUT(base, x_0, c, steps, velocities=True)
         assert kw["velocities"] and torch.allclose(xs, base_xs, atol=1e-5) and torch.allclose(v_D, base_v, atol=1e-5)
 
