@@ -226,6 +226,10 @@ class Args:
     """Eq. 4's squared error in the Demonstrator's terms (Eqs. 3, 5, 9, 11) with the pixels the Demonstrator moves
     weighed this many times the others, as pretraining weighs moving pixels (--motion_weight); 1 = the paper's plain
     norm. Ours, toy model only (distill.squared_error; docs/results.md)"""
+    off_judged: bool = False
+    """--variant off: Eq. 3 on the Demonstrator rollouts the judges pass only (task judged against T, and consistency:
+    judge_rollouts' solved), the rest of the batch dropped -- a step whose every rollout fails makes no update. Ours,
+    not the paper's: a rejection filter against the toy VLM's wrong D's, which need no oracle (docs/given-t.md)"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
@@ -371,7 +375,7 @@ READ_BY = {
                      "p_goal", "p_task_words", "width", "evidence", "evidence_by_colour", "evidence_lead", "ground",
                      "relate", "relate_text", "point_weight", "point_goal_only"), ("pretrain",)),
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
-    **dict.fromkeys(("variant", "batch", "sft_dataset"), ("distill",)),
+    **dict.fromkeys(("variant", "batch", "sft_dataset", "off_judged"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "executor_weights", "lora_rank", "lora_alpha",
                      "lora_convs", "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
@@ -626,6 +630,8 @@ def parse_args(argv=None) -> Args:
                                                 or (args.stage == "rl" and args.lambda_distill > 0)):
         p.error("--distill_motion_weight weighs Eq. 4 in Eqs. 3, 5, 9, 11: it needs --stage distill with --variant "
                 "off or on, or --stage rl with the anchor or r_distill on")
+    if args.off_judged and (args.stage != "distill" or "off" not in args.variant.split(",")):
+        p.error("--off_judged filters Eq. 3's Demonstrator rollouts: it needs --stage distill with --variant off")
     if args.executor_prompt not in EXECUTOR_PROMPTS:
         p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
@@ -1073,8 +1079,20 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
             if variant == "off":    # Eq. 3 on the Demonstrator's states
                 traj, v_D = distill.rollout(model, x_0, c_D, train_steps(args), True, velocities=True, teacher=teacher)
-                loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
-                                               motion_weight=args.distill_motion_weight, teacher_v=v_D)
+                if args.off_judged:     # ours: only the rollouts the judges pass, judged against T
+                    videos = model.decode(traj[0][-1], frame0)
+                    solved = judge_rollouts(videos, [pairs[i].task.text for i in idx])["solved"]
+                    keep = torch.nonzero(solved == 1).flatten()
+                    extra["judged_kept"] = len(keep) / len(idx)     # and, measured only, the wrong D's share kept
+                    extra["kept_wrong_d"] = float(np.mean([pairs[idx[i]].error != "" for i in keep.tolist()] or [0]))
+                    traj, v_D = (traj[0][:, keep], traj[1]), v_D[:, keep]
+                    c_E, c_D = (model.condition(frame0[keep.numpy()], [ts[i] for i in keep.tolist()])
+                                for ts in (tasks, descs))
+                if not args.off_judged or len(keep):
+                    loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
+                                                   motion_weight=args.distill_motion_weight, teacher_v=v_D)
+                else:                   # no rollout passed: nothing to regress on, no update
+                    loss = torch.zeros((), requires_grad=True)
             elif variant == "on":   # Eq. 5 / Eq. 11 on the Executor's own states
                 loss = distill.on_policy_loss(model, distill.rollout(model, x_0, c_E, train_steps(args)),
                                               c_E, c_D, gen, state_window(args), args.distill_motion_weight, teacher)

@@ -433,6 +433,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--state_window", "0.31,0.39"], "no grid time k/10 lies in [LO, HI)"),
                       (["--beta_d", "0", "--state_window", "0.3,0.7"], "--state_window picks the states"),
                       (["--distill_motion_weight", "0"], "--distill_motion_weight must be > 0"),
+                      (["--off_judged"], "--off_judged filters Eq. 3's Demonstrator rollouts: it needs --stage"),
+                      (["--stage", "distill", "--variant", "on,dmd", "--off_judged"], "it needs --stage distill with"),
                       (["--task_reward", "fig10"], "--task_reward: unknown"),
                       (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
                       (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs and --lora_embeddings are for the toy"),
@@ -1120,6 +1122,41 @@ def test_distill_variants_train_on_the_states_and_videos_their_objective_names(t
         train.distill_variant(dataclasses.replace(args, train_crowded=True), "sft", pairs, logf, res)
     (_, videos, _, _), _, _ = fits[-1]
     assert {len(train.world.read_sprites(v[0])) for v in videos} == {5}
+
+
+def test_off_judged_regresses_only_on_the_demonstrator_rollouts_the_judges_pass(tiny_ckpt, tmp_path, monkeypatch):
+    """--off_judged (ours): the judges see each of the Demonstrator's videos -- its trajectory's end decoded after
+    its first frame -- against its pair's T, and Eq. 3 regresses on the rows they pass only: those rows' states,
+    their sampler's velocities, T under c_E and D under c_D. A row judged NaN (no judgment) is dropped as a failure;
+    a step whose every row fails updates nothing."""
+    args = dataclasses.replace(_args(tiny_ckpt, tmp_path, stage="distill", steps=1, batch=4), off_judged=True)
+    res = {k: 0.0 for k in train.EVAL_KEYS}
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: res)
+    conds = _spy(monkeypatch, train.models.ToyVideoFlow, "condition")
+    rollouts, losses = (_spy(monkeypatch, train.distill, n) for n in ("rollout", "off_policy_loss"))
+    texts = lambda c: next(a[2] for a, _, out in conds if out is c)  # noqa: E731
+    pairs = train.world.make_pairs(40, seed=0, error_rate=0.5)[:8]
+    judged, verdicts = [], torch.tensor([1.0, float("nan"), 0.0, 1.0])
+    monkeypatch.setattr(train, "judge_rollouts", lambda v, t, *a, **k: judged.append((v, t)) or {"solved": verdicts})
+    with open(tmp_path / "log.jsonl", "w") as logf:
+        train.distill_variant(args, "off", pairs, logf, res)
+    (_, _, c_D, *_), _, ((xs, _), v_D) = rollouts[-1]
+    (videos, tasks), = judged
+    batch = [next(p for p in pairs if p.d_vlm == d and np.array_equal(p.frame0, f))
+             for d, f in zip(texts(c_D), videos[:, 0])]
+    assert tasks == [p.task.text for p in batch]
+    assert np.array_equal(videos[:, 1:], train.models.ToyVideoFlow.decode(xs[-1], videos[:, 0])[:, 1:])
+    (_, (states, _), c_E, c_D_kept, *_), kw, _ = losses[-1]
+    assert torch.equal(states, xs[:, [0, 3]]) and torch.equal(kw["teacher_v"], v_D[:, [0, 3]])
+    assert texts(c_E) == [batch[0].task.text, batch[3].task.text]
+    assert texts(c_D_kept) == [batch[0].d_vlm, batch[3].d_vlm]
+    assert torch.equal(c_E["frame0"], c_D["frame0"][[0, 3]])
+    verdicts.zero_()
+    with open(tmp_path / "log.jsonl", "w") as logf:
+        model, _ = train.distill_variant(dataclasses.replace(args, executor_weights="all"), "off", pairs, logf, res)
+    base = train.models.load_checkpoint(tiny_ckpt)[0]
+    assert all(torch.equal(p, q) for p, q in zip(base.parameters(), model.parameters()))
+    assert json.loads(open(tmp_path / "log.jsonl").read().splitlines()[-2])["judged_kept"] == 0
 
 
 def _base_rollouts(base, rollouts: list) -> None:
