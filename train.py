@@ -1084,10 +1084,10 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
                     solved = judge_rollouts(videos, [pairs[i].task.text for i in idx])["solved"]
                     keep = torch.nonzero(solved == 1).flatten()
                     extra["judged_kept"] = len(keep) / len(idx)     # and, measured only, the wrong D's share kept
-                    extra["kept_wrong_d"] = float(np.mean([pairs[idx[i]].error != "" for i in keep.tolist()] or [0]))
+                    extra["kept_wrong_d"] = (float(np.mean([pairs[idx[i]].error != "" for i in keep.tolist()]))
+                                             if len(keep) else float("nan"))
                     traj, v_D = (traj[0][:, keep], traj[1]), v_D[:, keep]
-                    c_E, c_D = (model.condition(frame0[keep.numpy()], [ts[i] for i in keep.tolist()])
-                                for ts in (tasks, descs))
+                    c_E, c_D = models.condition_rows(c_E, keep), models.condition_rows(c_D, keep)
                 if not args.off_judged or len(keep):
                     loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
                                                    motion_weight=args.distill_motion_weight, teacher_v=v_D)

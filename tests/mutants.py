@@ -1542,11 +1542,12 @@ MUTANTS = {
         ("                    traj, v_D = (traj[0][:, keep], traj[1]), v_D[:, keep]",
          "                    traj, v_D = (traj[0][:, keep], traj[1]), v_D[:, :len(keep)]",
          "--off_judged's targets from the batch's first rows, not the kept ones"),
-        ("                    c_E, c_D = (model.condition(frame0[keep.numpy()], [ts[i] for i in keep.tolist()])",
-         "                    c_E, c_D = (model.condition(frame0[:len(keep)], [ts[i] for i in keep.tolist()])",
-         "--off_judged's conditions on the batch's first frames, not the kept rows'"),
-        ("                                for ts in (tasks, descs))",
-         "                                for ts in (tasks, tasks))", "--off_judged's c_D holding T, not D"),
+        ("                    c_E, c_D = models.condition_rows(c_E, keep), models.condition_rows(c_D, keep)",
+         "                    c_E, c_D = models.condition_rows(c_E, torch.arange(len(keep))), "
+         "models.condition_rows(c_D, keep)", "--off_judged's c_E the batch's first rows, not the kept ones"),
+        ("                    c_E, c_D = models.condition_rows(c_E, keep), models.condition_rows(c_D, keep)",
+         "                    c_E, c_D = models.condition_rows(c_E, keep), models.condition_rows(c_E, keep)",
+         "--off_judged's c_D holding T, not D"),
         ("                    loss = torch.zeros((), requires_grad=True)",
          "                    loss = sum(p.sum() for p in params) * 0", "--off_judged updating (weight decay, "
          "momentum) on a step whose every rollout failed"),
