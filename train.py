@@ -230,6 +230,12 @@ class Args:
     """--variant off: Eq. 3 on the Demonstrator rollouts the judges pass only (task judged against T, and consistency:
     judge_rollouts' solved), the rest of the batch dropped -- a step whose every rollout fails makes no update. Ours,
     not the paper's: a rejection filter against the toy VLM's wrong D's, which need no oracle (docs/given-t.md)"""
+    off_pool: int = 0
+    """--variant off: Eq. 3's Demonstrator trajectories rolled out once, before the first step, N of them from fresh
+    noise for each training pair (with --off_judged judged then, the failures dropped), and each step's batch drawn
+    from that pool instead of rolled out anew: for the fixed Demonstrator the same kind of states and targets, at a
+    step's cost without the sampler's rollout. 0: a fresh rollout every step (the paper's). Ours (train.py's
+    demonstrator_pool)"""
     model: str = "toy"
     """the video model: toy (ToyVideoFlow from --init) | ltx2 (LTX-2 from a local diffusers directory,
     --model_path; pip install -r requirements-real.txt) | hunyuan15 (HunyuanVideo-1.5 image-to-video, likewise) |
@@ -375,7 +381,7 @@ READ_BY = {
                      "p_goal", "p_task_words", "width", "evidence", "evidence_by_colour", "evidence_lead", "ground",
                      "relate", "relate_text", "point_weight", "point_goal_only"), ("pretrain",)),
     **dict.fromkeys(("motion_weight", "loss_power", "log_every"), ("pretrain", "distill")),  # distill: the SFT rows
-    **dict.fromkeys(("variant", "batch", "sft_dataset", "off_judged"), ("distill",)),
+    **dict.fromkeys(("variant", "batch", "sft_dataset", "off_judged", "off_pool"), ("distill",)),
     **dict.fromkeys(("init", "executor_prompt", "steps", "lr", "executor_weights", "lora_rank", "lora_alpha",
                      "lora_convs", "lora_embeddings", "sample_steps", "train_steps", "error_rate", "train_pairs",
                      "train_arrangements", "train_crowded", "eval_crowded", "eval_every", "eval_n", "eval_cache",
@@ -632,6 +638,10 @@ def parse_args(argv=None) -> Args:
                 "off or on, or --stage rl with the anchor or r_distill on")
     if args.off_judged and (args.stage != "distill" or "off" not in args.variant.split(",")):
         p.error("--off_judged filters Eq. 3's Demonstrator rollouts: it needs --stage distill with --variant off")
+    if args.off_pool < 0:
+        p.error(f"--off_pool must be >= 0 (0: a fresh Demonstrator rollout every step), got {args.off_pool}")
+    if args.off_pool and (args.stage != "distill" or "off" not in args.variant.split(",")):
+        p.error("--off_pool pools Eq. 3's Demonstrator rollouts: it needs --stage distill with --variant off")
     if args.executor_prompt not in EXECUTOR_PROMPTS:
         p.error(f"--executor_prompt: unknown {args.executor_prompt!r}; choose from {', '.join(EXECUTOR_PROMPTS)}")
     control_stage = args.stage == "rl" or (args.stage == "distill"
@@ -1008,6 +1018,49 @@ def executor_parameters(model, args: Args, start_from: dict | None = None) -> tu
     return models.lora_parameters(model), None
 
 
+def demonstrator_rollouts(model, x_0, c_D: dict, frame0, tasks: list, args: Args, teacher=None) -> tuple:
+    """Eq. 3's Demonstrator trajectory under c_D from noise x_0: ((xs, ts), the velocities its sampler took) and the
+    rows kept -- under --off_judged those whose videos (the trajectory's end decoded after its first frame) the
+    judges pass against their tasks T (judge_rollouts' solved; NaN, no judgment, fails), else every row."""
+    traj, v_D = distill.rollout(model, x_0, c_D, train_steps(args), True, velocities=True, teacher=teacher)
+    if not args.off_judged:
+        return traj, v_D, torch.arange(len(tasks))
+    solved = judge_rollouts(model.decode(traj[0][-1], frame0), tasks)["solved"]
+    return traj, v_D, torch.nonzero(solved == 1).flatten()
+
+
+def demonstrator_pool(model, pairs: list, args: Args, teacher, logf) -> SimpleNamespace:
+    """--off_pool N (ours): the Demonstrator's trajectories for Eq. 3, N from fresh noise for each training pair,
+    rolled out once in batches of --batch (under --off_judged judged then, and only those the judges pass kept), so a
+    step draws its batch from them and runs the Executor alone. The noise has its own generator (--seed): a resumed
+    run rolls out the same pool. Returns SimpleNamespace(xs (S+1, P, ...), ts (S+1,), vs (S, P, ...),
+    pair (P,): each trajectory's index into `pairs`); a pool under --batch trajectories is refused."""
+    gen, start = torch.Generator().manual_seed(args.seed), time.time()
+    which = np.repeat(np.arange(len(pairs)), args.off_pool)
+    xs, vs, kept = [], [], []
+    for i in range(0, len(which), args.batch):
+        idx = which[i:i + args.batch]
+        frame0, _, descs = _batch(pairs, idx)
+        x_0 = torch.randn(len(idx), *model.latent_shape(), generator=gen)
+        (x, ts), v_D, keep = demonstrator_rollouts(model, x_0, model.condition(frame0, descs), frame0,
+                                                   [pairs[j].task.text for j in idx], args, teacher)
+        xs.append(x[:, keep])
+        vs.append(v_D[:, keep])
+        kept.append(idx[keep.cpu().numpy()])
+        done = i + len(idx)
+        if done == len(which) or (i // args.batch) % 20 == 19:
+            print(f"[off] Demonstrator pool: {done}/{len(which)} rollouts, {sum(map(len, kept))} kept | "
+                  f"{_eta(start, done, len(which))}", flush=True)
+    pool = SimpleNamespace(xs=torch.cat(xs, 1), ts=ts, vs=torch.cat(vs, 1), pair=np.concatenate(kept))
+    rec = {"pool": True, "rollouts": len(which), "kept": len(pool.pair), "seconds": time.time() - start,
+           "kept_wrong_d": float(np.mean([pairs[j].error != "" for j in pool.pair])) if len(pool.pair) else None}
+    logf.write(json.dumps(rec) + "\n")      # the wrong D's share kept: measured from the oracle, never used
+    if len(pool.pair) < args.batch:
+        raise ValueError(f"--off_pool: the Demonstrator pool kept {len(pool.pair)} of {len(which)} rollouts, fewer "
+                         f"than a batch of {args.batch}; roll out more (a larger --off_pool)")
+    return pool
+
+
 def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, base=None, start_from=None,
                     fixed: dict | None = None, state: dict | None = None) -> tuple:
     """Train a fresh Executor (a LoRA on the base, or every weight: --executor_weights) with one self-distillation
@@ -1033,6 +1086,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
     if variant == "dmd":
         fake = distill.make_fake_score(model, args.lora_rank, args.lora_alpha)
         fake_opt = torch.optim.Adam(models.lora_parameters(fake), lr=args.lr)
+    pool = demonstrator_pool(model, pairs, args, teacher, logf) if variant == "off" and args.off_pool else None
     evals, start = [], time.time()
 
     def log_eval(step):
@@ -1055,7 +1109,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         log_eval(0)
     for step in range(first, args.steps + 1):
         t0 = time.time()
-        idx = rng.choice(len(pairs), args.batch, replace=False)
+        rows = rng.choice(len(pool.pair), args.batch, replace=False) if pool is not None else None   # --off_pool
+        idx = pool.pair[rows] if pool is not None else rng.choice(len(pairs), args.batch, replace=False)
         extra, loss_of = {}, None
         if base is not None:    # Table 1's +SFT on a real model: its labelled videos, --micro_batch at a time (each
             rows = [pairs[i] for i in idx]         # part draws its own x_0 and t: the same law as one pass)
@@ -1076,19 +1131,20 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         else:                   # the self-distillation objectives: Executor under c_E, Demonstrator under c_D
             frame0, tasks, descs = _batch(pairs, idx, args.executor_prompt)
             c_E, c_D = model.condition(frame0, tasks), model.condition(frame0, descs)
-            x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen)
+            x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen) if pool is None else None
             if variant == "off":    # Eq. 3 on the Demonstrator's states
-                traj, v_D = distill.rollout(model, x_0, c_D, train_steps(args), True, velocities=True, teacher=teacher)
-                if args.off_judged:     # ours: only the rollouts the judges pass, judged against T
-                    videos = model.decode(traj[0][-1], frame0)
-                    solved = judge_rollouts(videos, [pairs[i].task.text for i in idx])["solved"]
-                    keep = torch.nonzero(solved == 1).flatten()
+                if pool is not None:    # --off_pool: its trajectories, rolled out (and judged) before the first step
+                    traj, v_D, keep = (pool.xs[:, rows], pool.ts), pool.vs[:, rows], rows
+                else:
+                    traj, v_D, keep = demonstrator_rollouts(model, x_0, c_D, frame0,
+                                                            [pairs[i].task.text for i in idx], args, teacher)
+                if args.off_judged and pool is None:    # ours: only the rollouts the judges pass, judged against T
                     extra["judged_kept"] = len(keep) / len(idx)     # and, measured only, the wrong D's share kept
                     extra["kept_wrong_d"] = (float(np.mean([pairs[idx[i]].error != "" for i in keep.tolist()]))
                                              if len(keep) else float("nan"))
                     traj, v_D = (traj[0][:, keep], traj[1]), v_D[:, keep]
                     c_E, c_D = models.condition_rows(c_E, keep), models.condition_rows(c_D, keep)
-                if not args.off_judged or len(keep):
+                if len(keep):
                     loss = distill.off_policy_loss(model, traj, c_E, c_D, gen, teacher, window=state_window(args),
                                                    motion_weight=args.distill_motion_weight, teacher_v=v_D)
                 else:                   # no rollout passed: nothing to regress on, no update

@@ -435,6 +435,8 @@ def test_bad_input_one_line_exit_2_nothing_written(tiny_ckpt, tmp_path, capsys):
                       (["--distill_motion_weight", "0"], "--distill_motion_weight must be > 0"),
                       (["--off_judged"], "--off_judged filters Eq. 3's Demonstrator rollouts: it needs --stage"),
                       (["--stage", "distill", "--variant", "on,dmd", "--off_judged"], "it needs --stage distill with"),
+                      (["--stage", "distill", "--off_pool", "-1"], "--off_pool must be >= 0"),
+                      (["--off_pool", "4"], "--off_pool pools Eq. 3's Demonstrator rollouts: it needs --stage distill"),
                       (["--task_reward", "fig10"], "--task_reward: unknown"),
                       (["--judge", "qwen-vl-tiny", "--task_reward", "attributed"], "a VLM judge always asks"),
                       (["--model", "ltx2-tiny", "--lora_convs"], "--lora_convs and --lora_embeddings are for the toy"),
@@ -1158,6 +1160,49 @@ def test_off_judged_regresses_only_on_the_demonstrator_rollouts_the_judges_pass(
     base = train.models.load_checkpoint(tiny_ckpt)[0]
     assert all(torch.equal(p, q) for p, q in zip(base.parameters(), model.parameters()))
     assert json.loads(open(tmp_path / "log.jsonl").read().splitlines()[-2])["judged_kept"] == 0
+
+
+def test_off_pool_draws_eq3_batches_from_judged_demonstrator_rollouts_made_once(tiny_ckpt, tmp_path, monkeypatch):
+    """--off_pool N (ours): before the first step the Demonstrator rolls out N trajectories under c_D for each
+    training pair, from noises all different, judged against T under --off_judged; the steps roll out nothing and
+    regress Eq. 3 on trajectories drawn from the pool -- the kept ones only, each with its own states, its sampler's
+    velocities, its pair's T under c_E and D under c_D. A pool smaller than a batch is refused."""
+    args = dataclasses.replace(_args(tiny_ckpt, tmp_path, stage="distill", steps=3, batch=4), off_judged=True,
+                               off_pool=2)
+    res = {k: 0.0 for k in train.EVAL_KEYS}
+    monkeypatch.setattr(train, "evaluate_executor", lambda *a, **k: res)
+    conds = _spy(monkeypatch, train.models.ToyVideoFlow, "condition")
+    rollouts, losses = (_spy(monkeypatch, train.distill, n) for n in ("rollout", "off_policy_loss"))
+    texts = lambda c: next(a[2] for a, _, out in conds if out is c)  # noqa: E731
+    pairs = train.world.make_pairs(40, seed=0, error_rate=0.5)[:6]
+    judged, verdicts = [], torch.tensor([1.0, float("nan"), 0.0, 1.0])
+    monkeypatch.setattr(train, "judge_rollouts", lambda v, t, *a, **k: judged.append(t) or {"solved": verdicts[:len(t)]})
+    with open(tmp_path / "log.jsonl", "w") as logf:
+        train.distill_variant(args, "off", pairs, logf, res)
+    assert len(rollouts) == 3 and len(losses) == 3         # 12 rollouts in batches of 4 before the steps; none after
+    descs = sum((texts(a[2]) for a, _, _ in rollouts), [])
+    assert descs == [p.d_vlm for p in pairs for _ in range(2)] and judged == [
+        [p.task.text for p in pairs for _ in range(2)][i:i + 4] for i in (0, 4, 8)]
+    x_0 = torch.cat([a[1] for a, _, _ in rollouts])
+    assert len({tuple(x.flatten()[:4].tolist()) for x in x_0}) == 12
+    kept = [(xs[:, j], v_D[:, j], d) for (_, _, c, *_), _, ((xs, _), v_D) in rollouts
+            for j, d in enumerate(texts(c)) if verdicts[j] == 1]
+    drawn = []                  # which kept trajectories each step drew: not the same ones every step
+    for (_, (states, _), c_E, c_D, *_), kw, _ in losses:
+        assert states.shape[1] == 4
+        drawn.append(set())
+        for j in range(4):
+            (i, v, d), = [(i, v, d) for i, (x, v, d) in enumerate(kept) if torch.equal(x, states[:, j])]
+            assert torch.equal(kw["teacher_v"][:, j], v) and texts(c_D)[j] == d
+            assert texts(c_E)[j] == next(p.task.text for p in pairs if p.d_vlm == d)
+            drawn[-1].add(i)
+    assert len(set(map(frozenset, drawn))) > 1
+    pool = json.loads(open(tmp_path / "log.jsonl").read().splitlines()[0])
+    assert pool["pool"] and (pool["rollouts"], pool["kept"]) == (12, 6)
+    verdicts[0] = 0.0
+    with pytest.raises(ValueError, match="the Demonstrator pool kept 3 of 12 rollouts, fewer than a batch of 4"):
+        with open(tmp_path / "log.jsonl", "w") as logf:
+            train.distill_variant(args, "off", pairs, logf, res)
 
 
 def _base_rollouts(base, rollouts: list) -> None:
