@@ -1109,8 +1109,8 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
         log_eval(0)
     for step in range(first, args.steps + 1):
         t0 = time.time()
-        rows = rng.choice(len(pool.pair), args.batch, replace=False) if pool is not None else None   # --off_pool
-        idx = pool.pair[rows] if pool is not None else rng.choice(len(pairs), args.batch, replace=False)
+        drawn = rng.choice(len(pool.pair), args.batch, replace=False) if pool is not None else None  # --off_pool
+        idx = pool.pair[drawn] if pool is not None else rng.choice(len(pairs), args.batch, replace=False)
         extra, loss_of = {}, None
         if base is not None:    # Table 1's +SFT on a real model: its labelled videos, --micro_batch at a time (each
             rows = [pairs[i] for i in idx]         # part draws its own x_0 and t: the same law as one pass)
@@ -1134,7 +1134,7 @@ def distill_variant(args: Args, variant: str, pairs: list, logf, at_0: dict, bas
             x_0 = torch.randn(args.batch, *model.latent_shape(), generator=gen) if pool is None else None
             if variant == "off":    # Eq. 3 on the Demonstrator's states
                 if pool is not None:    # --off_pool: its trajectories, rolled out (and judged) before the first step
-                    traj, v_D, keep = (pool.xs[:, rows], pool.ts), pool.vs[:, rows], rows
+                    traj, v_D, keep = (pool.xs[:, drawn], pool.ts), pool.vs[:, drawn], drawn
                 else:
                     traj, v_D, keep = demonstrator_rollouts(model, x_0, c_D, frame0,
                                                             [pairs[i].task.text for i in idx], args, teacher)
